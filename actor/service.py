@@ -1,0 +1,149 @@
+"""The actor: roll out episodes with the newest policy it has and publish each finished one.
+
+On start it asks the learner for the latest weights (a late joiner must not wait
+for the next broadcast), then follows the weights topic keeping only the newest
+message (RingChannel(1): a slow actor never holds the learner back). It pauses
+while the buffer says actors are ahead of the samples-per-insert ratio.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+
+import numpy as np
+import zenoh
+
+from common import protocol as P
+from common.config import Config
+from common.envs import EnvSpec, make_env
+from common.lifecycle import StopFlag
+from common.zenoh_session import open_session, session_config
+
+from .policy import NumpyPolicy, initial_weights
+
+log = logging.getLogger("actor")
+
+
+class _Rollout:
+    """The episode in progress in one env."""
+
+    def __init__(self, obs: np.ndarray, version: int) -> None:
+        self.obs = [obs]
+        self.actions: list[np.ndarray] = []
+        self.rewards: list[float] = []
+        self.version = version
+
+
+def _fetch_weights(session: zenoh.Session, keys: P.Keys, timeout: float) -> P.Weights | None:
+    for reply in session.get(keys.weights, timeout=timeout):
+        if reply.ok is not None:
+            try:
+                return P.decode_weights(reply.ok.payload.to_bytes())
+            except P.ProtocolError as e:
+                log.warning("ignoring malformed weights reply: %s", e)
+    return None
+
+
+def run_actor(cfg: Config, stop: StopFlag) -> int:
+    spec = EnvSpec.of(cfg.env)
+    keys = P.Keys(cfg.run)
+    seed = cfg.seed + cfg.actor_id
+    rng = np.random.default_rng(seed)
+    envs = [make_env(cfg.env, cfg.actor_reward) for _ in range(cfg.envs_per_actor)]
+    conf = session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
+    with open_session(conf) as session:
+        weights_sub = session.declare_subscriber(keys.weights, zenoh.handlers.RingChannel(1))
+        throttle_sub = session.declare_subscriber(keys.control_throttle, zenoh.handlers.RingChannel(1))
+        session.declare_subscriber(keys.control_shutdown, lambda s: stop.set("shutdown message"))
+        episodes_pub = session.declare_publisher(
+            keys.episodes, congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA
+        )
+        stats_pub = session.declare_publisher(
+            keys.stats_actor(cfg.actor_id),
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_LOW,
+        )
+        token = session.liveliness().declare_token(keys.alive("actor", cfg.actor_id))
+
+        weights = _fetch_weights(session, keys, timeout=3.0)
+        if weights is None:
+            log.info("no learner answered; acting with a local random policy until weights arrive")
+            weights = initial_weights(spec.obs_dim, spec.act_dim, cfg.hidden, seed)
+        policy = NumpyPolicy(weights, spec.obs_dim, spec.act_dim)
+        log.info("actor %d on %s with %d env(s), policy version %d", cfg.actor_id, cfg.env, len(envs), policy.version)
+
+        rollouts = []
+        for j, env in enumerate(envs):
+            obs, _ = env.reset(seed=seed + 10_000 * j)
+            rollouts.append(_Rollout(np.asarray(obs, np.float32), policy.version))
+        episodes = steps = seq = 0
+        paused = False
+        paused_s = 0.0
+        last_return = None
+        next_stats = time.monotonic()
+
+        while not stop.is_set():
+            msg = throttle_sub.try_recv()
+            if msg is not None:
+                try:
+                    paused = bool(P.decode_control(msg.payload.to_bytes(), "throttle")["paused"])
+                except (P.ProtocolError, KeyError):
+                    log.warning("ignoring malformed throttle message")
+            if paused:
+                t0 = time.monotonic()
+                stop.wait(0.01)
+                paused_s += time.monotonic() - t0
+            else:
+                obs_batch = np.stack([r.obs[-1] for r in rollouts])
+                acts = policy.sample(obs_batch, rng)
+                for j, (env, ro) in enumerate(zip(envs, rollouts)):
+                    obs, reward, terminated, truncated, _ = env.step(spec.to_env_action(acts[j]))
+                    ro.obs.append(np.asarray(obs, np.float32))
+                    ro.actions.append(acts[j])
+                    ro.rewards.append(float(reward))
+                    steps += 1
+                    if terminated or truncated:
+                        rewards = np.asarray(ro.rewards, np.float32)
+                        ep = P.Episode(
+                            cfg.actor_id, seq, ro.version, float(rewards.sum(dtype=np.float64)),
+                            bool(terminated), bool(truncated), np.stack(ro.obs), np.stack(ro.actions), rewards,
+                        )
+                        episodes_pub.put(P.EpisodeCodec.encode(ep))
+                        seq += 1
+                        episodes += 1
+                        last_return = ep.episode_return
+                        obs, _ = env.reset()
+                        rollouts[j] = _Rollout(np.asarray(obs, np.float32), policy.version)
+                if steps % cfg.weights_poll_steps < len(envs):
+                    msg = weights_sub.try_recv()
+                    if msg is not None:
+                        try:
+                            new = P.decode_weights(msg.payload.to_bytes())
+                            if new.version > policy.version:
+                                policy = NumpyPolicy(new, spec.obs_dim, spec.act_dim)
+                        except P.ProtocolError as e:
+                            log.warning("ignoring malformed weights: %s", e)
+            now = time.monotonic()
+            if now >= next_stats:
+                stats_pub.put(
+                    P.encode_stats(
+                        {
+                            "time": time.time(),
+                            "actor_id": cfg.actor_id,
+                            "episodes": episodes,
+                            "steps": steps,
+                            "policy_version": policy.version,
+                            "paused": paused,
+                            "paused_s": paused_s,
+                            "last_episode_return": last_return,
+                        }
+                    )
+                )
+                next_stats = now + cfg.stats_interval
+        token.undeclare()
+        log.info("actor %d stopping (%s): %d episodes, %d steps", cfg.actor_id, stop.reason, episodes, steps)
+    for env in envs:
+        env.close()
+    return 0

@@ -1,0 +1,297 @@
+"""The buffer service: D_O, D_E and the rate limiter behind Zenoh.
+
+`ReplayState` is the whole service without the network (used directly by unit
+tests); `run_buffer` wires it to Zenoh. One thread owns the state: Zenoh
+callbacks only hand raw payloads and queries to a bounded `Inbox`, and the main
+loop decodes, stores and answers. A full inbox blocks the callback, which
+back-pressures the publishing actor through Zenoh (BLOCK), so no episode is
+dropped while the service runs.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from typing import Any
+
+import numpy as np
+import zenoh
+
+from common import protocol as P
+from common.config import Config
+from common.envs import EnvSpec
+from common.lifecycle import StopFlag
+from common.zenoh_session import open_session, session_config
+
+from .batches import compose_batches
+from .expert_heap import ExpertHeap
+from .online_fifo import OnlineFifo
+from .rate_limiter import SamplesPerInsertLimiter
+
+log = logging.getLogger("buffer")
+
+
+class ReplayState:
+    """D_O, D_E (SILCR only), the limiter and every counter the stats topic reports."""
+
+    def __init__(self, cfg: Config, spec: EnvSpec) -> None:
+        self.cfg = cfg
+        self.spec = spec
+        self.constant_rewards = cfg.algo == "silcr"
+        self.fifo = OnlineFifo(cfg.online_capacity)
+        self.heap = ExpertHeap(cfg.expert_capacity) if cfg.algo == "silcr" else None
+        self.limiter = SamplesPerInsertLimiter(
+            cfg.samples_per_insert, cfg.learning_starts, cfg.spi_tolerance, throttle_inserts=not cfg.no_throttle
+        )
+        self.codec = P.EpisodeCodec(spec.obs_dim, spec.act_dim, spec.max_episode_steps, cfg.max_episode_bytes)
+        self.rng = np.random.default_rng(cfg.seed + 1_000_003)
+        self.episodes_received = 0
+        self.transitions_received = 0
+        self.rejections: collections.Counter[str] = collections.Counter()
+        self.batches_served = 0
+        self.sample_requests = 0
+        self.sample_requests_rejected = 0
+        self.not_ready_replies = 0
+        self.last_episode_version = -1
+        self.started = time.time()
+
+    # -- episodes ---------------------------------------------------------------
+    def ingest(self, payload: bytes) -> P.Episode:
+        """Store one episode message; raise `ProtocolError` (and count it) if it is rejected."""
+        try:
+            ep = self.codec.decode(payload)
+        except P.ProtocolError as e:
+            self.rejections[e.reason] += 1
+            raise
+        self.fifo.add(ep)
+        if self.heap is not None:
+            self.heap.offer(ep)
+        self.limiter.record_insert(ep.length)
+        self.episodes_received += 1
+        self.transitions_received += ep.length
+        self.last_episode_version = max(self.last_episode_version, ep.policy_version)
+        return ep
+
+    # -- batches ----------------------------------------------------------------
+    def meta(self) -> dict[str, Any]:
+        return {
+            "env_steps": self.transitions_received,
+            "episodes_received": self.episodes_received,
+            "online_transitions": len(self.fifo),
+            "expert_transitions": len(self.heap) if self.heap is not None else 0,
+        }
+
+    def answer(self, payload: bytes | None) -> P.BatchReply:
+        """Answer one sample query; raise `ProtocolError` for a malformed request."""
+        self.sample_requests += 1
+        try:
+            if payload is None:
+                raise P.ProtocolError("bad_request", "sample query carries no payload")
+            req = P.SampleRequest.decode(payload)
+        except P.ProtocolError:
+            self.sample_requests_rejected += 1
+            raise
+        if self.limiter.warming_up() or (self.heap is not None and self.heap.num_episodes == 0):
+            self.not_ready_replies += 1
+            return P.BatchReply("not_ready", self.meta(), reason="warmup", retry_after_ms=200)
+        k = min(req.batches, self.limiter.available())
+        if k == 0:
+            self.not_ready_replies += 1
+            return P.BatchReply("not_ready", self.meta(), reason="rate_limited", retry_after_ms=20)
+        arrays = compose_batches(
+            self.fifo, self.heap, k, req.batch_size, self.rng, self.constant_rewards, self.spec.obs_dim, self.spec.act_dim
+        )
+        self.limiter.record_sample(k)
+        self.batches_served += k
+        return P.BatchReply("ok", self.meta() | {"batches": k, "batch_size": req.batch_size}, arrays)
+
+    # -- stats ------------------------------------------------------------------
+    def stats(self) -> dict[str, Any]:
+        heap = self.heap
+        return {
+            "time": time.time(),
+            "uptime_s": time.time() - self.started,
+            "run": self.cfg.run,
+            "env": self.cfg.env,
+            "algo": self.cfg.algo,
+            "online_transitions": len(self.fifo),
+            "online_episodes": self.fifo.num_episodes,
+            "online_capacity": self.fifo.capacity,
+            "expert_transitions": len(heap) if heap is not None else 0,
+            "expert_capacity": heap.capacity if heap is not None else 0,
+            "expert_episodes": heap.num_episodes if heap is not None else 0,
+            "expert_min_return": P.finite_or_none(heap.min_return) if heap is not None else None,
+            "expert_max_return": P.finite_or_none(heap.max_return) if heap is not None else None,
+            "expert_admitted": heap.admitted if heap is not None else 0,
+            "expert_rejected": heap.rejected if heap is not None else 0,
+            "expert_evicted": heap.evicted if heap is not None else 0,
+            "episodes_received": self.episodes_received,
+            "transitions_received": self.transitions_received,
+            "episodes_rejected": sum(self.rejections.values()),
+            "rejections": dict(self.rejections),
+            "batches_served": self.batches_served,
+            "sample_requests": self.sample_requests,
+            "sample_requests_rejected": self.sample_requests_rejected,
+            "not_ready_replies": self.not_ready_replies,
+            "samples_per_insert": self.limiter.observed_samples_per_insert(),
+            "samples_per_insert_target": self.limiter.samples_per_insert,
+            "rate_limiter_error": self.limiter.error - self.limiter.centre,
+            "warming_up": self.limiter.warming_up(),
+            "latest_episode_policy_version": self.last_episode_version,
+        }
+
+
+class Inbox:
+    """Bounded hand-over from Zenoh callback threads to the service's main loop.
+
+    Queries are served before episodes so a burst of episodes never makes the
+    learner wait. `put_*` blocks while full (back-pressure); once `close()` is
+    called it gives up and counts the item as dropped.
+    """
+
+    def __init__(self, max_episodes: int = 64, max_queries: int = 256) -> None:
+        self._cond = threading.Condition()
+        self._episodes: collections.deque[bytes] = collections.deque()
+        self._queries: collections.deque[zenoh.Query] = collections.deque()
+        self.max_episodes = max_episodes
+        self.max_queries = max_queries
+        self.closed = False
+        self.dropped_at_close = 0
+        self.blocked_puts = 0
+
+    def _put(self, q: collections.deque, item: Any, limit: int) -> None:
+        with self._cond:
+            if len(q) >= limit:
+                self.blocked_puts += 1
+            while len(q) >= limit and not self.closed:
+                self._cond.wait(0.1)
+            if self.closed:
+                self.dropped_at_close += 1
+                return
+            q.append(item)
+            self._cond.notify_all()
+
+    def put_episode(self, payload: bytes) -> None:
+        self._put(self._episodes, payload, self.max_episodes)
+
+    def put_query(self, query: zenoh.Query) -> None:
+        self._put(self._queries, query, self.max_queries)
+
+    def get(self, timeout: float) -> tuple[str, Any] | None:
+        with self._cond:
+            if not (self._queries or self._episodes):
+                self._cond.wait(timeout)
+            if self._queries:
+                item: tuple[str, Any] = ("query", self._queries.popleft())
+            elif self._episodes:
+                item = ("episode", self._episodes.popleft())
+            else:
+                return None
+            self._cond.notify_all()
+            return item
+
+    def depth(self) -> tuple[int, int]:
+        with self._cond:
+            return len(self._episodes), len(self._queries)
+
+    def close(self) -> list[Any]:
+        """Stop accepting; return the queries still waiting so they can be finalized."""
+        with self._cond:
+            self.closed = True
+            pending = list(self._queries)
+            self._queries.clear()
+            self._cond.notify_all()
+            return pending
+
+
+def run_buffer(cfg: Config, stop: StopFlag) -> int:
+    spec = EnvSpec.of(cfg.env)
+    state = ReplayState(cfg, spec)
+    keys = P.Keys(cfg.run)
+    inbox = Inbox()
+    log.info(
+        "buffer for run %s: %s, algo %s, D_O %d, D_E %s, learning starts after %d transitions",
+        cfg.run, cfg.env, cfg.algo, cfg.online_capacity, cfg.expert_capacity if state.heap is not None else "-", cfg.learning_starts,
+    )
+    conf = session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
+    with open_session(conf) as session:
+        session.declare_subscriber(keys.episodes, lambda s: inbox.put_episode(s.payload.to_bytes()))
+        session.declare_queryable(keys.sample, inbox.put_query)
+        session.declare_subscriber(keys.control_shutdown, lambda s: stop.set("shutdown message"))
+        actors_alive: set[str] = set()
+
+        def on_alive(sample: zenoh.Sample) -> None:
+            who = str(sample.key_expr).rsplit("/", 1)[-1]
+            if sample.kind == zenoh.SampleKind.PUT:
+                actors_alive.add(who)
+                log.info("actor %s joined", who)
+            else:
+                actors_alive.discard(who)
+                log.info("actor %s left", who)
+
+        session.liveliness().declare_subscriber(keys.alive_actors, on_alive, history=True)
+        token = session.liveliness().declare_token(keys.alive("buffer"))
+        stats_pub = session.declare_publisher(
+            keys.stats_buffer,
+            encoding=zenoh.Encoding.APPLICATION_JSON,
+            congestion_control=zenoh.CongestionControl.DROP,
+            priority=zenoh.Priority.DATA_LOW,
+        )
+        throttle_pub = session.declare_publisher(
+            keys.control_throttle, congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA_HIGH
+        )
+        paused = False
+        next_stats = time.monotonic()
+        while not stop.is_set():
+            item = inbox.get(timeout=max(0.0, min(0.5, next_stats - time.monotonic())))
+            if item is not None:
+                kind, obj = item
+                if kind == "query":
+                    _serve(state, obj, keys)
+                else:
+                    try:
+                        state.ingest(obj)
+                    except P.ProtocolError as e:
+                        log.warning("rejected episode (%s): %s", e.reason, e)
+            now_paused = state.limiter.inserts_paused()
+            now = time.monotonic()
+            if now_paused != paused or now >= next_stats:
+                throttle_pub.put(P.encode_control("throttle", paused=now_paused))
+                paused = now_paused
+            if now >= next_stats:
+                stats = state.stats()
+                ep_depth, q_depth = inbox.depth()
+                stats |= {
+                    "actors_alive": len(actors_alive),
+                    "actors_paused": paused,
+                    "inbox_episodes": ep_depth,
+                    "inbox_queries": q_depth,
+                    "inbox_blocked_puts": inbox.blocked_puts,
+                    "episodes_dropped": inbox.dropped_at_close,
+                }
+                stats_pub.put(P.encode_stats(stats))
+                next_stats = now + cfg.stats_interval
+        for q in inbox.close():
+            with q:
+                q.reply_err(b"buffer service is shutting down")
+        token.undeclare()
+        log.info(
+            "buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d batches served",
+            stop.reason, state.episodes_received, state.transitions_received,
+            sum(state.rejections.values()), state.batches_served,
+        )
+    return 0
+
+
+def _serve(state: ReplayState, query: zenoh.Query, keys: P.Keys) -> None:
+    with query:  # leaving the block finalizes the query, so the learner's get() ends at once
+        payload = query.payload.to_bytes() if query.payload is not None else None
+        try:
+            reply = state.answer(payload)
+        except P.ProtocolError as e:
+            log.warning("rejected sample request (%s): %s", e.reason, e)
+            query.reply_err(f"{e.reason}: {e}".encode())
+            return
+        query.reply(keys.sample, reply.encode())

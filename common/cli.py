@@ -1,0 +1,127 @@
+"""The `silcr` console script.
+
+    silcr train    the whole system locally (router, buffer, learner, N actors)
+    silcr buffer   the buffer service alone        silcr actor    one actor
+    silcr learner  the learner alone               silcr router   a Zenoh router
+    silcr monitor  live stats of a running system
+
+A bad option or config file prints one line naming it and exits with code 2.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+
+from common.config import ConfigError, Config, add_options, option_name, resolve
+
+ROLES_HELP = {
+    "train": "run router, buffer service, learner and actors locally until the step budget is spent",
+    "buffer": "run the buffer service (D_O, D_E, rate limiter)",
+    "learner": "run the learner (SAC updates, weights, evaluation, checkpoints)",
+    "actor": "run one actor process",
+    "router": "run a Zenoh router (the rendezvous point of a run)",
+    "monitor": "show the live stats of a running system",
+}
+
+
+class _Parser(argparse.ArgumentParser):
+    def error(self, message: str) -> None:  # one line, exit code 2, no traceback
+        self.exit(2, f"{self.prog}: error: {message}\n")
+
+
+def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
+    parser = _Parser(prog="silcr", description="Distributed SILCR: self-imitation learning with constant reward.")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
+    subs: dict[str, argparse.ArgumentParser] = {}
+    for role, text in ROLES_HELP.items():
+        p = sub.add_parser(role, help=text, description=text, formatter_class=argparse.ArgumentDefaultsHelpFormatter
+                           if role == "router" else argparse.HelpFormatter)
+        subs[role] = p
+        if role == "router":
+            p.add_argument("--listen", nargs="+", default=["tcp/127.0.0.1:7447"], help="endpoints to listen on")
+            p.add_argument("--connect", nargs="+", default=[], help="other routers to connect to (multi-host)")
+            p.add_argument("--zenoh-config", default="", help="Zenoh JSON5 config file")
+            continue
+        add_options(p, role)
+        if role == "monitor":
+            p.add_argument("--once", action="store_true", help="print one snapshot and exit")
+            p.add_argument("--json", action="store_true", help="with --once: print the snapshot as JSON")
+            p.add_argument("--timeout", type=float, default=5.0, help="with --once: seconds to wait for stats (default: 5)")
+    return parser, subs
+
+
+def _check_runtime_options(cfg: Config, role: str) -> None:
+    """Options that can only be checked by trying them: the env id and the Zenoh endpoints."""
+    from common.zenoh_session import session_config
+
+    if role != "monitor":
+        from common.envs import EnvSpec
+
+        try:
+            EnvSpec.of(cfg.env)
+        except ValueError as e:
+            raise ConfigError("--env", str(e)) from None
+    try:
+        session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
+    except ValueError as e:
+        raise ConfigError("--connect/--listen/--zenoh-config", str(e)) from None
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser, subs = build_parser()
+    args = parser.parse_args(argv)
+    role = args.command
+    if role is None:
+        parser.print_help()
+        return 2
+
+    from common.lifecycle import StopFlag, setup_logging
+
+    if role == "router":
+        setup_logging("router")
+        from deploy.router import run_router
+
+        try:
+            return run_router(args.listen, args.connect, args.zenoh_config, StopFlag().install_signal_handlers())
+        except Exception as e:  # zenoh raises ZError for a port in use or a bad endpoint
+            subs[role].exit(2, f"silcr router: error: {e}\n")
+
+    try:
+        cfg = resolve(args, role)
+        _check_runtime_options(cfg, role)
+        if role == "learner" and cfg.device == "cuda":
+            from learner.service import pick_device
+
+            try:
+                pick_device("cuda")
+            except ValueError as e:
+                raise ConfigError("--device", str(e).removeprefix("--device cuda: ")) from None
+    except ConfigError as e:
+        subs[role].error(str(e))
+
+    if role == "train":
+        from deploy.local import run_train
+
+        return run_train(cfg)
+    stop = StopFlag().install_signal_handlers()
+    if role == "monitor":
+        from deploy.monitor import run_monitor
+
+        return run_monitor(cfg.run, cfg.connect, cfg.zenoh_mode, cfg.zenoh_config, args.once, args.json, args.timeout, stop)
+    setup_logging(role if role != "actor" else f"actor-{cfg.actor_id}")
+    if role == "buffer":
+        from buffer_service.service import run_buffer
+
+        return run_buffer(cfg, stop)
+    if role == "learner":
+        from learner.service import run_learner
+
+        return run_learner(cfg, stop)
+    from actor.service import run_actor
+
+    return run_actor(cfg, stop)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

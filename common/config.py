@@ -1,0 +1,236 @@
+"""Run configuration: one flat dataclass, filled from defaults, a TOML file, then the command line.
+
+Every option is declared once, here, with the roles (subcommands) that take it;
+`common.cli` builds each subcommand's parser from these declarations. Defaults are
+the paper's Table I and the official code (see docs/algorithm.md for sources).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import time
+import tomllib
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import tomli_w
+
+from common.envs import REWARD_MODES
+from common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
+
+ALGOS = ("silcr", "sac")
+DEVICES = ("auto", "cpu", "cuda")
+ZENOH_MODES = ("peer", "client")
+
+ALL = frozenset({"train", "actor", "buffer", "learner"})
+SERVICE = frozenset({"train", "buffer", "learner"})
+
+
+class ConfigError(ValueError):
+    """A bad option value; `option` names it as the user wrote it (`--actors` or the TOML key)."""
+
+    def __init__(self, option: str, message: str) -> None:
+        super().__init__(f"{option}: {message}")
+        self.option = option
+
+
+def _opt(default: Any, roles: frozenset[str] | set[str], help: str, **extra: Any) -> Any:
+    meta = {"roles": frozenset(roles), "help": help, **extra}
+    if isinstance(default, list):
+        return field(default_factory=lambda: list(default), metadata=meta)
+    return field(default=default, metadata=meta)
+
+
+@dataclass
+class Config:
+    # --- run and environment ------------------------------------------------
+    run: str = _opt("", ALL | {"monitor"}, "run name; the Zenoh keys live under silcr/<run>/ (default: <env>-<algo>-<time> for train)")
+    runs_dir: str = _opt("runs", {"train", "learner"}, "directory holding one sub-directory per run")
+    env: str = _opt("Hopper-v5", ALL, "gymnasium environment id (continuous control, flat Box spaces)")
+    algo: str = _opt("silcr", ALL, "silcr: constant 0/1 rewards from two buffers; sac: plain SAC on the env's reward", choices=ALGOS)
+    reward: str = _opt("episodic", ALL, "reward the actors' env gives (silcr always uses episodic)", choices=REWARD_MODES)
+    seed: int = _opt(0, ALL, "base seed; actor i uses seed + i")
+    # --- Zenoh -----------------------------------------------------------------
+    connect: list[str] = _opt([], ALL | {"monitor"}, "Zenoh endpoints to connect to (default: the local router)", nargs="+")
+    listen: list[str] = _opt([], ALL, "Zenoh endpoints this process listens on (default tcp/127.0.0.1:0: loopback only)", nargs="+")
+    zenoh_mode: str = _opt("peer", ALL | {"monitor"}, "peer (direct links between components) or client (everything through the router)", choices=ZENOH_MODES)
+    zenoh_config: str = _opt("", ALL | {"monitor"}, "Zenoh JSON5 config file applied before the options above")
+    zenoh_listen: str = _opt("tcp/127.0.0.1:7447", {"train"}, "endpoint of the router that `silcr train` starts")
+    # --- buffer service --------------------------------------------------------
+    online_capacity: int = _opt(1_000_000, SERVICE, "D_O size in transitions (Table I: 1e6)")
+    expert_capacity: int = _opt(50_000, SERVICE, "D_E size M in transitions (Table I: 5e4)")
+    batch_size: int = _opt(128, SERVICE, "transitions per update; SILCR takes half from each buffer (official: 64 + 64)")
+    learning_starts: int = _opt(10_240, SERVICE, "no update until D_O holds more than this many transitions (official code)")
+    samples_per_insert: float = _opt(1.0, SERVICE, "gradient updates per environment step (official: 1)")
+    spi_tolerance: float = _opt(2_000.0, SERVICE, "how many updates the learner or actors may run ahead of the ratio")
+    no_throttle: bool = _opt(False, {"train", "buffer"}, "let actors run free instead of pausing them when they are ahead")
+    max_episode_bytes: int = _opt(DEFAULT_MAX_EPISODE_BYTES, {"train", "buffer"}, "largest episode message accepted")
+    # --- learner ---------------------------------------------------------------
+    hidden: list[int] = _opt([800, 400], {"train", "learner", "actor"}, "hidden layer sizes of actor and critics (Table I: 800 400)", nargs="+")
+    lr: float = _opt(3e-4, {"train", "learner"}, "Adam learning rate for actor, critics and alpha")
+    gamma: float = _opt(0.99, {"train", "learner"}, "discount factor")
+    tau: float = _opt(0.05, {"train", "learner"}, "target-critic soft update rate (official: 0.05)")
+    grad_clip: float = _opt(40.0, {"train", "learner"}, "gradient-norm clip for actor and each critic (0: off)")
+    init_alpha: float = _opt(1.0, {"train", "learner"}, "initial entropy temperature")
+    time_limit_terminal: bool = _opt(False, {"train", "learner"}, "treat time-limit truncation as terminal, as the official code does")
+    total_steps: int = _opt(2_000_000, {"train", "learner"}, "environment-step budget of the run")
+    weights_interval: int = _opt(50, {"train", "learner"}, "publish policy weights every N updates")
+    eval_interval: int = _opt(5_000, {"train", "learner"}, "evaluate the deterministic policy every N environment steps")
+    eval_episodes: int = _opt(5, {"train", "learner"}, "episodes per evaluation")
+    checkpoint_interval: int = _opt(10_000, {"train", "learner"}, "checkpoint every N updates (and at the end)")
+    resume: bool = _opt(False, {"train", "learner"}, "continue from <run dir>/checkpoints/learner.pt (networks, optimizers, alpha, counters)")
+    device: str = _opt("auto", {"train", "learner"}, "torch device for the learner (auto: CUDA when present)", choices=DEVICES)
+    torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: torch's default)")
+    batches_per_request: int = _opt(4, {"train", "learner"}, "batches fetched per sample query")
+    requests_in_flight: int = _opt(2, {"train", "learner"}, "sample queries kept in flight so the learner never waits on the network")
+    # --- actors ----------------------------------------------------------------
+    actors: int = _opt(1, {"train"}, "number of actor processes")
+    actor_id: int = _opt(0, {"actor"}, "this actor's id (also its seed offset)")
+    envs_per_actor: int = _opt(1, {"train", "actor"}, "environments stepped by each actor with one batched forward pass")
+    weights_poll_steps: int = _opt(50, {"train", "actor"}, "check for new weights every N steps")
+    # --- stats -----------------------------------------------------------------
+    stats_interval: float = _opt(1.0, ALL, "seconds between stats messages")
+
+    # ------------------------------------------------------------------------
+    @property
+    def run_dir(self) -> Path:
+        return Path(self.runs_dir) / self.run
+
+    @property
+    def actor_reward(self) -> str:
+        return "episodic" if self.algo == "silcr" else self.reward
+
+    def to_dict(self) -> dict[str, Any]:
+        return dataclasses.asdict(self)
+
+    def save(self, path: Path) -> None:
+        tmp = path.with_suffix(path.suffix + ".tmp")
+        tmp.write_bytes(tomli_w.dumps(self.to_dict()).encode())
+        tmp.replace(path)
+
+
+FIELDS = {f.name: f for f in dataclasses.fields(Config)}
+
+
+def option_name(name: str) -> str:
+    return "--" + name.replace("_", "-")
+
+
+def add_options(parser: argparse.ArgumentParser, role: str) -> None:
+    """Add every option of `role` to `parser`, with SUPPRESS defaults so only given options override."""
+    parser.add_argument("--config", metavar="TOML", help="TOML file of options (keys as below, '-' or '_'); the command line wins")
+    for f in dataclasses.fields(Config):
+        meta = f.metadata
+        if role not in meta["roles"]:
+            continue
+        default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+        kw: dict[str, Any] = {"default": argparse.SUPPRESS, "dest": f.name}
+        if f.type in ("bool", bool):
+            kw["action"] = "store_true"
+            kw["help"] = meta["help"]
+        else:
+            elem = {"list[str]": str, "list[int]": int, "int": int, "float": float, "str": str}[str(f.type)]
+            kw["type"] = elem
+            if "nargs" in meta:
+                kw["nargs"] = meta["nargs"]
+            if "choices" in meta:
+                kw["choices"] = meta["choices"]
+            shown = " ".join(map(str, default)) if isinstance(default, list) else default
+            kw["help"] = f"{meta['help']} (default: {shown})" if shown not in ("", []) else meta["help"]
+            kw["metavar"] = "{" + ",".join(meta["choices"]) + "}" if "choices" in meta else f.name.upper().split("_")[-1]
+        parser.add_argument(option_name(f.name), **kw)
+
+
+def _coerce(name: str, value: Any, where: str) -> Any:
+    f = FIELDS[name]
+    t = str(f.type)
+    label = f"{where}{name}" if where else option_name(name)
+    ok = {
+        "bool": isinstance(value, bool),
+        "int": isinstance(value, int) and not isinstance(value, bool),
+        "float": isinstance(value, (int, float)) and not isinstance(value, bool),
+        "str": isinstance(value, str),
+        "list[str]": isinstance(value, list) and all(isinstance(v, str) for v in value),
+        "list[int]": isinstance(value, list) and all(isinstance(v, int) and not isinstance(v, bool) for v in value),
+    }[t]
+    if not ok:
+        raise ConfigError(label, f"expected {t}, got {value!r}")
+    if "choices" in f.metadata and value not in f.metadata["choices"]:
+        raise ConfigError(label, f"invalid choice {value!r} (choose from {', '.join(f.metadata['choices'])})")
+    return float(value) if t == "float" else value
+
+
+def load_toml(path: str, role: str) -> dict[str, Any]:
+    p = Path(path)
+    try:
+        data = tomllib.loads(p.read_text())
+    except FileNotFoundError:
+        raise ConfigError("--config", f"file not found: {path}") from None
+    except (tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError("--config", f"{path} is not valid TOML ({e})") from None
+    out: dict[str, Any] = {}
+    for key, value in data.items():
+        name = key.replace("-", "_")
+        if name not in FIELDS:
+            raise ConfigError(f"{path}: {key}", "unknown option")
+        out[name] = _coerce(name, value, f"{path}: ")
+    return out
+
+
+def resolve(args: argparse.Namespace, role: str) -> Config:
+    """Defaults < TOML file < command line, then validate."""
+    values: dict[str, Any] = {}
+    if getattr(args, "config", None):
+        values.update(load_toml(args.config, role))
+    for name in FIELDS:
+        if name in vars(args):
+            values[name] = getattr(args, name)
+    cfg = Config(**values)
+    if role == "train" and not cfg.run:
+        cfg.run = f"{cfg.env.replace('/', '_')}-{cfg.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+    validate(cfg, role)
+    return cfg
+
+
+def validate(cfg: Config, role: str) -> None:
+    def positive(name: str, minimum: float = 1) -> None:
+        if getattr(cfg, name) < minimum:
+            raise ConfigError(option_name(name), f"must be >= {minimum}, got {getattr(cfg, name)}")
+
+    if not cfg.run:
+        raise ConfigError("--run", "a run name is required")
+    try:
+        validate_run_name(cfg.run)
+    except ValueError as e:
+        raise ConfigError("--run", str(e)) from None
+    for name in ("online_capacity", "expert_capacity", "total_steps", "weights_interval", "eval_interval",
+                 "checkpoint_interval", "actors", "envs_per_actor", "batches_per_request", "requests_in_flight",
+                 "weights_poll_steps"):
+        positive(name)
+    positive("batch_size", 2)
+    positive("eval_episodes", 0)
+    positive("learning_starts", 0)
+    positive("actor_id", 0)
+    positive("torch_threads", 0)
+    positive("spi_tolerance", 1)
+    if cfg.batches_per_request > 64:
+        raise ConfigError("--batches-per-request", f"must be <= 64, got {cfg.batches_per_request}")
+    if not cfg.samples_per_insert > 0:
+        raise ConfigError("--samples-per-insert", f"must be > 0, got {cfg.samples_per_insert}")
+    if not 0 < cfg.gamma <= 1:
+        raise ConfigError("--gamma", f"must be in (0, 1], got {cfg.gamma}")
+    if not 0 < cfg.tau <= 1:
+        raise ConfigError("--tau", f"must be in (0, 1], got {cfg.tau}")
+    for name in ("lr", "init_alpha"):
+        if not getattr(cfg, name) > 0:
+            raise ConfigError(option_name(name), f"must be > 0, got {getattr(cfg, name)}")
+    if cfg.grad_clip < 0:
+        raise ConfigError("--grad-clip", f"must be >= 0, got {cfg.grad_clip}")
+    if not cfg.hidden or any(h < 1 for h in cfg.hidden):
+        raise ConfigError("--hidden", f"needs one or more positive layer sizes, got {cfg.hidden}")
+    if cfg.stats_interval <= 0:
+        raise ConfigError("--stats-interval", f"must be > 0, got {cfg.stats_interval}")
+    if cfg.learning_starts >= cfg.online_capacity:
+        raise ConfigError("--learning-starts", f"must be below --online-capacity ({cfg.online_capacity})")

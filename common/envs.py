@@ -1,0 +1,103 @@
+"""Environments: the episodic-reward wrapper and the env factory every component uses.
+
+The paper's setting (§III-A): the environment gives 0 at every step and the
+episode's summed reward at its last step. `EpisodicReward` turns any gymnasium
+env into that; the episodic versions of the paper's five tasks are registered as
+`silcr/<Task>-v5` (for example `gymnasium.make("silcr/Hopper-v5")`).
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Any, SupportsFloat
+
+import gymnasium as gym
+import numpy as np
+
+PAPER_TASKS = ("Swimmer-v5", "Hopper-v5", "HalfCheetah-v5", "Walker2d-v5", "Humanoid-v5")
+REWARD_MODES = ("episodic", "dense")
+
+
+class EpisodicReward(gym.Wrapper):
+    """Return 0 at every step and the sum of the wrapped env's rewards at the episode's last step.
+
+    The last step is the one where `terminated` or `truncated` is true, so this
+    wrapper must sit outside gymnasium's `TimeLimit`. The dense reward of each step
+    stays available as `info["dense_reward"]`.
+    """
+
+    def __init__(self, env: gym.Env) -> None:
+        super().__init__(env)
+        self._sum = 0.0
+
+    def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):
+        self._sum = 0.0
+        return self.env.reset(seed=seed, options=options)
+
+    def step(self, action):
+        obs, reward, terminated, truncated, info = self.env.step(action)
+        r = float(reward)
+        self._sum += r
+        info = dict(info)
+        info["dense_reward"] = r
+        out: SupportsFloat = self._sum if (terminated or truncated) else 0.0
+        return obs, out, terminated, truncated, info
+
+
+def make_env(env_id: str, reward: str = "dense", **kwargs: Any) -> gym.Env:
+    """Make `env_id` with dense or episodic reward; raise ValueError with a clear message on a bad id."""
+    if reward not in REWARD_MODES:
+        raise ValueError(f"reward must be one of {REWARD_MODES}, got {reward!r}")
+    try:
+        env = gym.make(env_id, **kwargs)
+    except gym.error.Error as e:
+        raise ValueError(f"unknown or unusable environment {env_id!r}: {e}") from None
+    if not isinstance(env.action_space, gym.spaces.Box) or not isinstance(env.observation_space, gym.spaces.Box):
+        env.close()
+        raise ValueError(f"environment {env_id!r} needs Box observation and action spaces (continuous control)")
+    if len(env.observation_space.shape) != 1 or len(env.action_space.shape) != 1:
+        env.close()
+        raise ValueError(f"environment {env_id!r} needs flat (1-D) observations and actions")
+    return EpisodicReward(env) if reward == "episodic" else env
+
+
+@dataclass(frozen=True)
+class EnvSpec:
+    """What the buffer, learner and actors must agree on about the run's env."""
+
+    env_id: str
+    obs_dim: int
+    act_dim: int
+    action_low: np.ndarray
+    action_high: np.ndarray
+    max_episode_steps: int
+
+    @staticmethod
+    def of(env_id: str) -> "EnvSpec":
+        env = make_env(env_id)
+        try:
+            max_steps = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else 100_000
+            return EnvSpec(
+                env_id,
+                int(env.observation_space.shape[0]),
+                int(env.action_space.shape[0]),
+                np.asarray(env.action_space.low, dtype=np.float32),
+                np.asarray(env.action_space.high, dtype=np.float32),
+                int(max_steps),
+            )
+        finally:
+            env.close()
+
+    def to_env_action(self, squashed: np.ndarray) -> np.ndarray:
+        """Map the policy's [-1, 1] output to the env's bounds (the official code skips this)."""
+        return self.action_low + (np.asarray(squashed) + 1.0) * 0.5 * (self.action_high - self.action_low)
+
+
+def _register_episodic_tasks() -> None:
+    for task in PAPER_TASKS:
+        eid = f"silcr/{task}"
+        if eid not in gym.registry:
+            gym.register(id=eid, entry_point=make_env, kwargs={"env_id": task, "reward": "episodic"})
+
+
+_register_episodic_tasks()

@@ -1,0 +1,67 @@
+"""Process lifecycle: turn SIGINT/SIGTERM into a stop flag, and stop when the parent dies.
+
+Every long-running loop polls `StopFlag.is_set()` (or waits on it), so Ctrl-C,
+`kill`, a shutdown message or the death of the launching process all end the
+component through the same clean path: close the Zenoh session, flush files.
+"""
+
+from __future__ import annotations
+
+import logging
+import os
+import signal
+import sys
+import threading
+
+
+class StopFlag:
+    def __init__(self, watch_parent: bool = False) -> None:
+        self._event = threading.Event()
+        self.reason = ""
+        self._parent = os.getppid() if watch_parent else None
+
+    def install_signal_handlers(self) -> "StopFlag":
+        def handler(signum: int, _frame: object) -> None:
+            if self._event.is_set() and signum == signal.SIGINT:
+                # A second Ctrl-C means "now": skip the clean path.
+                os._exit(130)
+            self.set(signal.Signals(signum).name)
+
+        signal.signal(signal.SIGINT, handler)
+        signal.signal(signal.SIGTERM, handler)
+        return self
+
+    def set(self, reason: str = "stop requested") -> None:
+        if not self._event.is_set():
+            self.reason = reason
+            self._event.set()
+
+    def is_set(self) -> bool:
+        if not self._event.is_set() and self._parent is not None and os.getppid() != self._parent:
+            self.set("parent process died")
+        return self._event.is_set()
+
+    def wait(self, timeout: float) -> bool:
+        """Sleep up to `timeout` seconds; return True as soon as stop is requested."""
+        if self.is_set():
+            return True
+        step = 0.5 if self._parent is not None else timeout
+        remaining = timeout
+        while remaining > 0:
+            if self._event.wait(min(step, remaining)):
+                return True
+            remaining -= step
+            if self.is_set():
+                return True
+        return False
+
+
+def setup_logging(component: str, level: int = logging.INFO) -> logging.Logger:
+    logging.basicConfig(
+        level=level,
+        stream=sys.stderr,
+        format=f"%(asctime)s {component} %(levelname)s %(message)s",
+        datefmt="%H:%M:%S",
+        force=True,
+    )
+    return logging.getLogger(component)

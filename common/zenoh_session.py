@@ -1,0 +1,90 @@
+"""Zenoh session configuration shared by every component (see docs/protocol.md, "Transport").
+
+Settings chosen from measurements in the project notes:
+* peers connect to the router and listen on loopback by default, so gossip gives
+  them direct links (twice the throughput of routing everything, and no
+  head-of-line blocking between components) without exposing a port;
+* multicast scouting off (explicit endpoints only);
+* shared memory off (a known silent-drop race under CPU load);
+* a BLOCK publisher waits up to 60 s for a stalled consumer before zenoh closes
+  the link (default 5 s, which loses data during a long checkpoint or GC pause).
+"""
+
+from __future__ import annotations
+
+import json
+
+import zenoh
+
+DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
+DEFAULT_PEER_LISTEN = "tcp/127.0.0.1:0"
+BLOCK_WAIT_BEFORE_CLOSE_US = 60_000_000
+
+_log_initialised = False
+
+
+def init_logging() -> None:
+    """Route zenoh's own warnings (closed transports, dropped oversize messages) to stderr once."""
+    global _log_initialised
+    if not _log_initialised:
+        zenoh.init_log_from_env_or("error")
+        _log_initialised = True
+
+
+def _base(zenoh_config: str) -> zenoh.Config:
+    if zenoh_config:
+        try:
+            return zenoh.Config.from_file(zenoh_config)
+        except Exception as e:  # ZError or OSError: both mean the file is unusable
+            raise ValueError(f"cannot load Zenoh config {zenoh_config}: {e}") from None
+    return zenoh.Config()
+
+
+def _common(conf: zenoh.Config) -> zenoh.Config:
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    conf.insert_json5(
+        "transport/link/tx/queue/congestion_control/block/wait_before_close", str(BLOCK_WAIT_BEFORE_CLOSE_US)
+    )
+    return conf
+
+
+def session_config(
+    connect: list[str] | None = None,
+    listen: list[str] | None = None,
+    mode: str = "peer",
+    zenoh_config: str = "",
+) -> zenoh.Config:
+    """Config for a component: a peer (or client) of the run's router."""
+    conf = _common(_base(zenoh_config))
+    try:
+        conf.insert_json5("mode", json.dumps(mode))
+        conf.insert_json5("connect/endpoints", json.dumps(list(connect) or [DEFAULT_ROUTER]))
+        if mode == "peer":
+            conf.insert_json5("listen/endpoints", json.dumps(list(listen) or [DEFAULT_PEER_LISTEN]))
+        elif listen:
+            conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        if mode == "client":
+            # Wait for the router instead of failing at once when it is not up yet.
+            conf.insert_json5("connect/timeout_ms", "-1")
+            conf.insert_json5("connect/exit_on_failure", "false")
+    except zenoh.ZError as e:
+        raise ValueError(f"invalid Zenoh endpoint or mode: {e}") from None
+    return conf
+
+
+def router_config(listen: list[str], connect: list[str] | None = None, zenoh_config: str = "") -> zenoh.Config:
+    conf = _common(_base(zenoh_config))
+    try:
+        conf.insert_json5("mode", '"router"')
+        conf.insert_json5("listen/endpoints", json.dumps(list(listen)))
+        if connect:
+            conf.insert_json5("connect/endpoints", json.dumps(list(connect)))
+    except zenoh.ZError as e:
+        raise ValueError(f"invalid Zenoh endpoint: {e}") from None
+    return conf
+
+
+def open_session(conf: zenoh.Config) -> zenoh.Session:
+    init_logging()
+    return zenoh.open(conf)

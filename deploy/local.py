@@ -1,0 +1,245 @@
+"""`silcr train`: the whole system on one machine, one process per component.
+
+Starts a Zenoh router, the buffer service, the learner and N actors with the
+`spawn` start method (a forked child of a process with a Zenoh session hangs
+or talks to nobody), shows a progress bar fed by the stats topics, and ends
+everything when the learner finishes, a component dies, or on Ctrl-C. Each
+child writes its log to `<run dir>/logs/<component>.log` and stops by itself
+if this process disappears.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import multiprocessing as mp
+import os
+import signal
+import socket
+import sys
+import threading
+import time
+from pathlib import Path
+from typing import Any
+
+from common import protocol as P
+from common.config import Config
+from common.lifecycle import StopFlag, setup_logging
+from common.zenoh_session import open_session, session_config
+
+log = logging.getLogger("train")
+
+STOP_GRACE_S = 20.0
+
+
+def component_main(role: str, cfg_dict: dict[str, Any], log_path: str) -> None:
+    """Entry point of every child process (importable, as `spawn` requires)."""
+    fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
+    os.dup2(fd, 1)
+    os.dup2(fd, 2)
+    os.close(fd)
+    sys.stdout = open(1, "w", buffering=1, closefd=False)
+    sys.stderr = open(2, "w", buffering=1, closefd=False)
+    name = role if role != "actor" else f"actor-{cfg_dict['actor_id']}"
+    setup_logging(name)
+    stop = StopFlag(watch_parent=True).install_signal_handlers()
+    cfg = Config(**cfg_dict)
+    try:
+        if role == "router":
+            from deploy.router import run_router
+
+            code = run_router([cfg.zenoh_listen], [], cfg.zenoh_config, stop)
+        elif role == "buffer":
+            from buffer_service.service import run_buffer
+
+            code = run_buffer(cfg, stop)
+        elif role == "learner":
+            from learner.service import run_learner
+
+            code = run_learner(cfg, stop)
+        else:
+            from actor.service import run_actor
+
+            code = run_actor(cfg, stop)
+    except Exception:
+        logging.getLogger(name).exception("%s failed", name)
+        code = 1
+    sys.stdout.flush()
+    sys.stderr.flush()
+    os._exit(code)
+
+
+def _endpoint_host_port(endpoint: str) -> tuple[str, int] | None:
+    try:
+        proto, addr = endpoint.split("/", 1)
+        host, port = addr.rsplit(":", 1)
+        return host.strip("[]"), int(port.split("#")[0])
+    except ValueError:
+        return None
+
+
+def _port_in_use(endpoint: str) -> bool:
+    hp = _endpoint_host_port(endpoint)
+    if hp is None or not endpoint.startswith("tcp/"):
+        return False
+    with socket.socket(socket.AF_INET6 if ":" in hp[0] else socket.AF_INET) as s:
+        s.settimeout(0.5)
+        return s.connect_ex(hp) == 0
+
+
+def _tail(path: Path, lines: int = 15) -> str:
+    try:
+        return "\n".join(path.read_text(errors="replace").splitlines()[-lines:])
+    except OSError:
+        return "(no log)"
+
+
+class _Stats:
+    def __init__(self, keys: P.Keys) -> None:
+        self.keys = keys
+        self.learner: dict[str, Any] = {}
+        self.buffer: dict[str, Any] = {}
+
+    def on_sample(self, sample: Any) -> None:
+        try:
+            data = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            return
+        if str(sample.key_expr) == self.keys.stats_learner:
+            self.learner = data
+        else:
+            self.buffer = data
+
+
+class LocalRun:
+    def __init__(self, cfg: Config) -> None:
+        self.cfg = cfg
+        self.ctx = mp.get_context("spawn")
+        self.procs: dict[str, mp.process.BaseProcess] = {}
+        self.logs = cfg.run_dir / "logs"
+
+    def start(self, role: str, cfg: Config, name: str) -> None:
+        p = self.ctx.Process(
+            target=component_main, args=(role, cfg.to_dict(), str(self.logs / f"{name}.log")), name=f"silcr-{name}"
+        )
+        p.start()
+        self.procs[name] = p
+
+    def stop_all(self, order: list[str]) -> None:
+        for name in order:
+            p = self.procs.get(name)
+            if p is not None and p.is_alive():
+                p.terminate()  # SIGTERM: the component's clean path
+        deadline = time.monotonic() + STOP_GRACE_S
+        for name in order:
+            p = self.procs.get(name)
+            if p is not None:
+                p.join(max(0.1, deadline - time.monotonic()))
+                if p.is_alive():
+                    log.warning("%s did not stop within %.0fs; killing it", name, STOP_GRACE_S)
+                    p.kill()
+                    p.join(5)
+
+
+def run_train(cfg: Config) -> int:
+    run_dir = cfg.run_dir
+    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    cfg.save(run_dir / "config.toml")
+    if _port_in_use(cfg.zenoh_listen):
+        print(f"silcr train: error: --zenoh-listen {cfg.zenoh_listen} is already in use (another run?); pick another port",
+              file=sys.stderr)
+        return 2
+    child_cfg = Config(**cfg.to_dict())
+    if not child_cfg.connect:
+        child_cfg.connect = [cfg.zenoh_listen]
+    run = LocalRun(cfg)
+    actor_names = [f"actor-{i}" for i in range(cfg.actors)]
+    order = [*actor_names, "learner", "buffer", "router"]
+    print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), {cfg.total_steps} env steps)")
+    keys = P.Keys(cfg.run)
+    stats = _Stats(keys)
+    code = 0
+    interrupted = False
+    previous = signal.getsignal(signal.SIGTERM)
+    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    try:
+        run.start("router", cfg, "router")
+        deadline = time.monotonic() + 15
+        while not _port_in_use(cfg.zenoh_listen):
+            if not run.procs["router"].is_alive() or time.monotonic() > deadline:
+                print(f"silcr train: error: the Zenoh router did not start on {cfg.zenoh_listen}:\n"
+                      f"{_tail(run.logs / 'router.log')}", file=sys.stderr)
+                run.stop_all(order)
+                return 1
+            time.sleep(0.1)
+        run.start("buffer", child_cfg, "buffer")
+        run.start("learner", child_cfg, "learner")
+        for i, name in enumerate(actor_names):
+            acfg = Config(**child_cfg.to_dict())
+            acfg.actor_id = i
+            run.start("actor", acfg, name)
+        with open_session(session_config([cfg.zenoh_listen], [], "peer", cfg.zenoh_config)) as session:
+            session.declare_subscriber(keys.stats_learner, stats.on_sample)
+            session.declare_subscriber(keys.stats_buffer, stats.on_sample)
+            code = _watch(run, cfg, stats)
+            if code == 0:
+                session.put(keys.control_shutdown, P.encode_control("shutdown", reason="finished"))
+    except KeyboardInterrupt:
+        interrupted = True
+        print("\nsilcr train: interrupted; stopping all components (Ctrl-C again to force)", file=sys.stderr)
+        code = 130
+    finally:
+        signal.signal(signal.SIGINT, signal.SIG_IGN)  # let the children finish their clean exit
+        run.stop_all(order)
+        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGTERM, previous)
+    if code == 0:
+        print(f"silcr train: done. progress: {run_dir / 'progress.csv'}; TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
+    elif not interrupted:
+        print(f"silcr train: stopped with errors; logs in {run.logs}", file=sys.stderr)
+    return code
+
+
+def _watch(run: LocalRun, cfg: Config, stats: _Stats) -> int:
+    """Follow the run until the learner finishes (0) or a component dies (1)."""
+    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+    interactive = sys.stdout.isatty()
+    progress = Progress(
+        TextColumn("[bold]env steps"),
+        BarColumn(),
+        MofNCompleteColumn(),
+        TextColumn("updates {task.fields[updates]}  version {task.fields[version]}  eval {task.fields[eval]}"),
+        TimeElapsedColumn(),
+        disable=not interactive,
+    )
+    task = progress.add_task("train", total=cfg.total_steps, updates=0, version=0, eval="-")
+    last_print = 0.0
+    clean_exit_seen: dict[str, float] = {}
+    with progress:
+        while True:
+            lr = stats.learner
+            env_steps = max(int(lr.get("env_steps", 0)), int(stats.buffer.get("transitions_received", 0)))
+            ev = lr.get("last_eval_return")
+            ev_s = f"{ev:.1f}" if isinstance(ev, (int, float)) else "-"
+            progress.update(task, completed=min(env_steps, cfg.total_steps), updates=lr.get("updates", 0),
+                            version=lr.get("policy_version", 0), eval=ev_s)
+            if not interactive and time.monotonic() - last_print > 10:
+                print(f"env steps {env_steps}/{cfg.total_steps}  updates {lr.get('updates', 0)}  "
+                      f"version {lr.get('policy_version', 0)}  eval {ev_s}", flush=True)
+                last_print = time.monotonic()
+            if run.procs["learner"].exitcode == 0:
+                return 0
+            for name, p in run.procs.items():
+                if p.exitcode is None:
+                    continue
+                if p.exitcode == 0 and name != "learner":
+                    # The learner's shutdown message ends the others first; give it time to exit too.
+                    clean_exit_seen.setdefault(name, time.monotonic())
+                    if time.monotonic() - clean_exit_seen[name] < STOP_GRACE_S:
+                        continue
+                progress.stop()
+                print(f"silcr train: {name} exited with code {p.exitcode}; last lines of {run.logs / (name + '.log')}:\n"
+                      f"{_tail(run.logs / (name + '.log'))}", file=sys.stderr)
+                return 1
+            time.sleep(0.25)

@@ -1,0 +1,108 @@
+"""`silcr monitor`: read a running system's stats topics and show them.
+
+It uses nothing but Zenoh and JSON, so it doubles as an example of an outside
+client of the stats contract (docs/protocol.md).
+"""
+
+from __future__ import annotations
+
+import json
+import threading
+import time
+from typing import Any
+
+from common import protocol as P
+from common.lifecycle import StopFlag
+from common.zenoh_session import open_session, session_config
+
+
+class StatsSnapshot:
+    """Latest stats message per component, filled from a Zenoh callback."""
+
+    def __init__(self, keys: P.Keys) -> None:
+        self.keys = keys
+        self._lock = threading.Lock()
+        self.buffer: dict[str, Any] | None = None
+        self.learner: dict[str, Any] | None = None
+        self.actors: dict[str, dict[str, Any]] = {}
+        self.malformed = 0
+
+    def on_sample(self, sample: Any) -> None:
+        key = str(sample.key_expr)
+        try:
+            data = json.loads(sample.payload.to_bytes())
+        except ValueError:
+            with self._lock:
+                self.malformed += 1
+            return
+        with self._lock:
+            if key == self.keys.stats_buffer:
+                self.buffer = data
+            elif key == self.keys.stats_learner:
+                self.learner = data
+            elif key.startswith(self.keys.prefix + "/stats/actor/"):
+                self.actors[key.rsplit("/", 1)[-1]] = data
+
+    def as_dict(self) -> dict[str, Any]:
+        with self._lock:
+            return {"run": self.keys.run, "buffer": self.buffer, "learner": self.learner, "actors": dict(self.actors)}
+
+
+def _table(snap: dict[str, Any]):
+    from rich.table import Table
+
+    t = Table(title=f"silcr run {snap['run']}", show_lines=False)
+    t.add_column("component")
+    t.add_column("field")
+    t.add_column("value", justify="right")
+    b = snap["buffer"] or {}
+    for k in ("transitions_received", "episodes_received", "episodes_rejected", "online_transitions", "expert_transitions",
+              "expert_episodes", "expert_min_return", "expert_max_return", "batches_served", "samples_per_insert",
+              "actors_alive", "actors_paused"):
+        if k in b:
+            t.add_row("buffer", k, _fmt(b[k]))
+    lr = snap["learner"] or {}
+    for k in ("env_steps", "updates", "policy_version", "last_eval_return", "updates_per_s", "duty_cycle", "batch_wait_ms_p99", "alpha"):
+        if k in lr:
+            t.add_row("learner", k, _fmt(lr[k]))
+    for aid, a in sorted(snap["actors"].items()):
+        t.add_row(f"actor {aid}", "episodes / steps / version", f"{a.get('episodes')} / {a.get('steps')} / {a.get('policy_version')}")
+    return t
+
+
+def _fmt(v: Any) -> str:
+    if isinstance(v, float):
+        return f"{v:,.3f}" if abs(v) < 100 else f"{v:,.1f}"
+    return str(v)
+
+
+def run_monitor(run: str, connect: list[str], mode: str, zenoh_config: str, once: bool, as_json: bool, timeout: float, stop: StopFlag) -> int:
+    keys = P.Keys(run)
+    snap = StatsSnapshot(keys)
+    with open_session(session_config(connect, [], mode, zenoh_config)) as session:
+        session.declare_subscriber(keys.stats_all, snap.on_sample)
+        if once:
+            deadline = time.monotonic() + timeout
+            # Stats arrive about once a second; wait for the buffer and the learner, or the deadline.
+            while time.monotonic() < deadline and not stop.is_set():
+                s = snap.as_dict()
+                if s["buffer"] is not None and s["learner"] is not None:
+                    break
+                stop.wait(0.1)
+            s = snap.as_dict()
+            if s["buffer"] is None and s["learner"] is None and not s["actors"]:
+                print(f"silcr monitor: no stats from run {run!r} within {timeout:g}s (is it running, and is --connect right?)")
+                return 1
+            if as_json:
+                print(json.dumps(s, indent=2))
+            else:
+                from rich.console import Console
+
+                Console().print(_table(s))
+            return 0
+        from rich.live import Live
+
+        with Live(_table(snap.as_dict()), refresh_per_second=2) as live:
+            while not stop.wait(1.0):
+                live.update(_table(snap.as_dict()))
+    return 0

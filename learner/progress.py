@@ -1,0 +1,54 @@
+"""Training records: `progress.csv` (one row per evaluation) and TensorBoard events."""
+
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+from typing import Any
+
+PROGRESS_COLUMNS = [
+    "time",
+    "env_steps",
+    "updates",
+    "policy_version",
+    "eval_return",
+    "eval_return_std",
+    "eval_length",
+    "alpha",
+    "critic_loss",
+    "actor_loss",
+    "updates_per_s",
+]
+
+
+class ProgressLog:
+    def __init__(self, run_dir: Path, resume: bool = False) -> None:
+        from torch.utils.tensorboard import SummaryWriter  # imported late: it is slow to import
+
+        run_dir.mkdir(parents=True, exist_ok=True)
+        self.csv_path = run_dir / "progress.csv"
+        new = not (resume and self.csv_path.exists())
+        self._file = open(self.csv_path, "w" if new else "a", newline="")
+        self._csv = csv.DictWriter(self._file, fieldnames=PROGRESS_COLUMNS, extrasaction="ignore")
+        if new:
+            self._csv.writeheader()
+            self._file.flush()
+        self.tb = SummaryWriter(log_dir=str(run_dir / "tb"))
+
+    def row(self, values: dict[str, Any]) -> None:
+        clean = {k: ("" if isinstance(v, float) and not math.isfinite(v) else v) for k, v in values.items()}
+        self._csv.writerow(clean)
+        self._file.flush()
+        step = int(values["env_steps"])
+        for k in ("eval_return", "eval_return_std", "eval_length"):
+            if k in values and isinstance(values[k], (int, float)):
+                self.tb.add_scalar(f"eval/{k.removeprefix('eval_')}", values[k], step)
+
+    def scalars(self, values: dict[str, float], step: int) -> None:
+        for k, v in values.items():
+            self.tb.add_scalar(k, v, step)
+
+    def close(self) -> None:
+        self._file.close()
+        self.tb.close()

@@ -1,0 +1,204 @@
+"""Soft actor-critic as SILCR uses it: networks and one gradient update, top to bottom.
+
+Equation numbers refer to the paper (`shared/paper/silcr.tex`):
+  (3) constant rewards: r = 0 for D_O samples, r = 1 for D_E samples. They arrive
+      in the batch already (the buffer service sets them), so this module is the
+      same for SILCR and plain SAC; only the rewards differ.
+  (4) critic loss J_Q, one squared error per buffer half (the batch concatenates
+      B_O and B_E, so a mean over the batch is the sum of the two expectations
+      up to the constant 1/2 split);
+  (5) soft target y = r + gamma * (min_j Q_target_j(s', a') - alpha log pi(a'|s')),
+      a' ~ pi(.|s');
+  (6) policy loss J_pi = E[alpha log pi(a|s) - Q(s, a)], a ~ pi(.|s).
+Automatic temperature tuning (not in the paper, in the official code):
+  J(alpha) = E[-log_alpha * (log pi(a|s) + target_entropy)].
+
+Details follow the official code (docs/algorithm.md lists them): mean-squared
+critic loss without the 1/2, gradient-norm clip 40 per critic and for the actor,
+the actor step against the just-updated critics, the alpha step using that
+actor step's log-probabilities, soft target update with tau = 0.05 after every
+update. Differs on purpose: the bootstrap is masked only on true termination
+(`terminated`), unless `time_limit_terminal` asks for the official behaviour.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+from torch import nn
+
+LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
+TANH_EPS = 1e-6  # official code: log(1 - tanh(u)^2 + 1e-6)
+
+
+def mlp(sizes: list[int]) -> nn.Sequential:
+    layers: list[nn.Module] = []
+    for i in range(len(sizes) - 1):
+        layers.append(nn.Linear(sizes[i], sizes[i + 1]))
+        layers.append(nn.ReLU())
+    return nn.Sequential(*layers)
+
+
+class Actor(nn.Module):
+    """Tanh-squashed Gaussian policy; outputs actions in [-1, 1] (rescaled to the env by the caller)."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int]) -> None:
+        super().__init__()
+        self.trunk = mlp([obs_dim, *hidden])
+        self.mean = nn.Linear(hidden[-1], act_dim)
+        self.log_std = nn.Linear(hidden[-1], act_dim)
+
+    def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        h = self.trunk(obs)
+        return self.mean(h), self.log_std(h).clamp(LOG_STD_MIN, LOG_STD_MAX)
+
+    def sample(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """a ~ pi(.|s) by reparameterisation, and log pi(a|s) with the tanh change of variables."""
+        mean, log_std = self(obs)
+        std = log_std.exp()
+        u = mean + std * torch.randn_like(mean)
+        a = torch.tanh(u)
+        log_prob = (-0.5 * ((u - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
+        log_prob = log_prob - torch.log(1 - a.pow(2) + TANH_EPS).sum(-1)
+        return a, log_prob
+
+    @torch.no_grad()
+    def act_deterministic(self, obs: torch.Tensor) -> torch.Tensor:
+        return torch.tanh(self(obs)[0])
+
+
+class Critic(nn.Module):
+    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int]) -> None:
+        super().__init__()
+        self.net = nn.Sequential(mlp([obs_dim + act_dim, *hidden]), nn.Linear(hidden[-1], 1))
+
+    def forward(self, obs: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+        return self.net(torch.cat([obs, act], -1)).squeeze(-1)
+
+
+@dataclass
+class SacHyper:
+    gamma: float = 0.99
+    tau: float = 0.05
+    lr: float = 3e-4
+    grad_clip: float = 40.0
+    init_alpha: float = 1.0
+    target_entropy: float | None = None  # default: -act_dim
+    time_limit_terminal: bool = False
+
+
+class Sac:
+    """Networks, optimizers and the update. `update(batch)` is one gradient step on everything."""
+
+    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], hp: SacHyper, device: torch.device) -> None:
+        self.hp = hp
+        self.device = device
+        self.obs_dim, self.act_dim, self.hidden = obs_dim, act_dim, list(hidden)
+        self.actor = Actor(obs_dim, act_dim, hidden).to(device)
+        self.q1 = Critic(obs_dim, act_dim, hidden).to(device)
+        self.q2 = Critic(obs_dim, act_dim, hidden).to(device)
+        self.q1_target = Critic(obs_dim, act_dim, hidden).to(device)
+        self.q2_target = Critic(obs_dim, act_dim, hidden).to(device)
+        self.q1_target.load_state_dict(self.q1.state_dict())
+        self.q2_target.load_state_dict(self.q2.state_dict())
+        for p in [*self.q1_target.parameters(), *self.q2_target.parameters()]:
+            p.requires_grad_(False)
+        self.log_alpha = torch.tensor(float(np.log(hp.init_alpha)), device=device, requires_grad=True)
+        self.target_entropy = float(-act_dim if hp.target_entropy is None else hp.target_entropy)
+        # One Adam over both critics equals the official two (Adam is per-parameter);
+        # clipping stays per critic.
+        self.critic_opt = torch.optim.Adam([*self.q1.parameters(), *self.q2.parameters()], lr=hp.lr)
+        self.actor_opt = torch.optim.Adam(self.actor.parameters(), lr=hp.lr)
+        self.alpha_opt = torch.optim.Adam([self.log_alpha], lr=hp.lr)
+
+    @property
+    def alpha(self) -> float:
+        return float(self.log_alpha.exp())
+
+    def update(self, obs, actions, rewards, next_obs, terminated, truncated) -> dict[str, float]:
+        """One SAC step on a batch of tensors already on `self.device` (rewards per eq. 3)."""
+        hp = self.hp
+        alpha = self.log_alpha.exp().detach()
+        done = terminated if not hp.time_limit_terminal else torch.maximum(terminated, truncated)
+
+        # (5) soft target from the target critics at a' ~ pi(.|s')
+        with torch.no_grad():
+            next_a, next_logp = self.actor.sample(next_obs)
+            q_next = torch.min(self.q1_target(next_obs, next_a), self.q2_target(next_obs, next_a))
+            y = rewards + hp.gamma * (1.0 - done) * (q_next - alpha * next_logp)
+
+        # (4) critic loss over the concatenated D_O and D_E halves
+        q1, q2 = self.q1(obs, actions), self.q2(obs, actions)
+        q1_loss = F.mse_loss(q1, y)
+        q2_loss = F.mse_loss(q2, y)
+        self.critic_opt.zero_grad(set_to_none=True)
+        (q1_loss + q2_loss).backward()
+        if hp.grad_clip > 0:
+            nn.utils.clip_grad_norm_(self.q1.parameters(), hp.grad_clip)
+            nn.utils.clip_grad_norm_(self.q2.parameters(), hp.grad_clip)
+        self.critic_opt.step()
+
+        # (6) policy loss against the just-updated critics (their gradients are not used)
+        a, logp = self.actor.sample(obs)
+        q_pi = torch.min(self.q1(obs, a), self.q2(obs, a))
+        actor_loss = (alpha * logp - q_pi).mean()
+        self.actor_opt.zero_grad(set_to_none=True)
+        actor_loss.backward()
+        if hp.grad_clip > 0:
+            nn.utils.clip_grad_norm_(self.actor.parameters(), hp.grad_clip)
+        self.actor_opt.step()
+
+        # temperature, with the log-probabilities of the actor step above
+        alpha_loss = -(self.log_alpha * (logp.detach() + self.target_entropy)).mean()
+        self.alpha_opt.zero_grad(set_to_none=True)
+        alpha_loss.backward()
+        self.alpha_opt.step()
+
+        # Polyak averaging of the target critics
+        with torch.no_grad():
+            for net, tgt in ((self.q1, self.q1_target), (self.q2, self.q2_target)):
+                for p, tp in zip(net.parameters(), tgt.parameters()):
+                    tp.lerp_(p, hp.tau)
+
+        return {
+            "critic_loss": float(q1_loss + q2_loss) / 2,
+            "actor_loss": float(actor_loss),
+            "alpha": float(alpha),
+            "alpha_loss": float(alpha_loss),
+            "q_mean": float(q1.mean()),
+            "entropy": float(-logp.mean()),
+        }
+
+    # -- weights for actors -------------------------------------------------------
+    def actor_arrays(self) -> dict[str, np.ndarray]:
+        return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in self.actor.state_dict().items()}
+
+    def arch(self) -> dict:
+        return {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "hidden": self.hidden}
+
+    # -- checkpoints ---------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "actor": self.actor.state_dict(),
+            "q1": self.q1.state_dict(),
+            "q2": self.q2.state_dict(),
+            "q1_target": self.q1_target.state_dict(),
+            "q2_target": self.q2_target.state_dict(),
+            "log_alpha": self.log_alpha.detach().cpu(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "alpha_opt": self.alpha_opt.state_dict(),
+            "arch": self.arch(),
+        }
+
+    def load_state_dict(self, sd: dict) -> None:
+        for name in ("actor", "q1", "q2", "q1_target", "q2_target"):
+            getattr(self, name).load_state_dict(sd[name])
+        with torch.no_grad():
+            self.log_alpha.copy_(sd["log_alpha"])
+        self.critic_opt.load_state_dict(sd["critic_opt"])
+        self.actor_opt.load_state_dict(sd["actor_opt"])
+        self.alpha_opt.load_state_dict(sd["alpha_opt"])
