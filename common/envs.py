@@ -18,7 +18,7 @@ PAPER_TASKS = ("Swimmer-v5", "Hopper-v5", "HalfCheetah-v5", "Walker2d-v5", "Huma
 REWARD_MODES = ("episodic", "dense")
 
 
-class EpisodicReward(gym.Wrapper):
+class EpisodicReward(gym.Wrapper, gym.utils.RecordConstructorArgs):
     """Return 0 at every step and the sum of the wrapped env's rewards at the episode's last step.
 
     The last step is the one where `terminated` or `truncated` is true, so this
@@ -27,7 +27,8 @@ class EpisodicReward(gym.Wrapper):
     """
 
     def __init__(self, env: gym.Env) -> None:
-        super().__init__(env)
+        gym.utils.RecordConstructorArgs.__init__(self)
+        gym.Wrapper.__init__(self, env)
         self._sum = 0.0
 
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None):

@@ -164,12 +164,12 @@ class Sac:
                     tp.lerp_(p, hp.tau)
 
         return {
-            "critic_loss": float(q1_loss + q2_loss) / 2,
-            "actor_loss": float(actor_loss),
+            "critic_loss": float((q1_loss + q2_loss).detach()) / 2,
+            "actor_loss": float(actor_loss.detach()),
             "alpha": float(alpha),
-            "alpha_loss": float(alpha_loss),
-            "q_mean": float(q1.mean()),
-            "entropy": float(-logp.mean()),
+            "alpha_loss": float(alpha_loss.detach()),
+            "q_mean": float(q1.detach().mean()),
+            "entropy": float(-logp.detach().mean()),
         }
 
     # -- weights for actors -------------------------------------------------------

@@ -1,0 +1,89 @@
+"""Options, TOML config files and the command line's handling of bad input."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+import tomllib
+
+import pytest
+
+from common.cli import build_parser
+from common.config import Config, ConfigError, resolve
+
+
+def _resolve(argv: list[str], role: str = "train") -> Config:
+    parser, _ = build_parser()
+    return resolve(parser.parse_args([role, *argv]), role)
+
+
+def test_defaults_are_table_one():
+    cfg = _resolve([])
+    assert cfg.hidden == [800, 400] and cfg.lr == 3e-4 and cfg.gamma == 0.99 and cfg.tau == 0.05
+    assert cfg.batch_size == 128 and cfg.online_capacity == 1_000_000 and cfg.expert_capacity == 50_000
+    assert cfg.learning_starts == 10_240 and cfg.samples_per_insert == 1.0
+    assert cfg.run.startswith("Hopper-v5-silcr-")
+
+
+def test_toml_then_command_line_precedence(tmp_path):
+    f = tmp_path / "c.toml"
+    f.write_text('env = "Walker2d-v5"\nactors = 3\nexpert-capacity = 20000\nhidden = [64, 64]\n')
+    cfg = _resolve(["--config", str(f), "--actors", "5"])
+    assert (cfg.env, cfg.actors, cfg.expert_capacity, cfg.hidden) == ("Walker2d-v5", 5, 20_000, [64, 64])
+
+
+def test_saved_config_round_trips(tmp_path):
+    cfg = _resolve(["--run", "r1", "--hidden", "32", "16", "--no-throttle"])
+    cfg.save(tmp_path / "config.toml")
+    data = tomllib.loads((tmp_path / "config.toml").read_text())
+    assert Config(**data) == cfg
+
+
+@pytest.mark.parametrize(
+    "text, needle",
+    [
+        ("actorz = 3\n", "unknown option"),
+        ("actors = 'three'\n", "expected int"),
+        ("algo = 'ppo'\n", "invalid choice"),
+        ("actors = = 3\n", "not valid TOML"),
+    ],
+)
+def test_bad_toml_is_a_config_error(tmp_path, text, needle):
+    f = tmp_path / "bad.toml"
+    f.write_text(text)
+    with pytest.raises(ConfigError, match=needle):
+        _resolve(["--config", str(f)])
+
+
+def _cli(*args: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "common.cli", *args], capture_output=True, text=True, timeout=120)
+
+
+@pytest.mark.parametrize(
+    "args, needle",
+    [
+        (["train", "--actors", "0"], "--actors"),
+        (["train", "--device", "gpu"], "--device"),
+        (["train", "--algo", "ppo"], "--algo"),
+        (["train", "--env", "NoSuchEnv-v0"], "--env"),
+        (["train", "--gamma", "1.5"], "--gamma"),
+        (["train", "--run", "a/b"], "--run"),
+        (["train", "--bogus"], "--bogus"),
+        (["train", "--config", "/nonexistent.toml"], "--config"),
+        (["buffer"], "--run"),
+        (["actor", "--run", "x", "--connect", "nonsense"], "--connect"),
+        (["learner", "--run", "x", "--batch-size", "1"], "--batch-size"),
+    ],
+)
+def test_bad_options_exit_2_with_one_line_and_no_traceback(args, needle):
+    r = _cli(*args)
+    assert r.returncode == 2, r.stderr
+    assert "Traceback" not in r.stderr
+    err_lines = [l for l in r.stderr.splitlines() if "error" in l]
+    assert len(err_lines) == 1 and needle in err_lines[0], r.stderr
+
+
+def test_every_subcommand_has_help():
+    for cmd in ("train", "buffer", "learner", "actor", "router", "monitor"):
+        r = _cli(cmd, "--help")
+        assert r.returncode == 0 and "usage: silcr " + cmd in r.stdout
