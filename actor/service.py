@@ -81,6 +81,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         episodes = steps = seq = 0
         paused = False
         paused_s = 0.0
+        waited_for_buffer_s = 0.0
         last_return = None
         next_stats = time.monotonic()
 
@@ -110,7 +111,19 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
                             cfg.actor_id, seq, ro.version, float(rewards.sum(dtype=np.float64)),
                             bool(terminated), bool(truncated), np.stack(ro.obs), np.stack(ro.actions), rewards,
                         )
-                        episodes_pub.put(P.EpisodeCodec.encode(ep))
+                        payload = P.EpisodeCodec.encode(ep)
+                        # With no buffer service subscribed a put would vanish: hold the episode
+                        # (and this actor) until one is back.
+                        if not episodes_pub.matching_status.matching:
+                            log.info("no buffer service is listening; holding episode %d until one is", seq)
+                            t0 = time.monotonic()
+                            while not episodes_pub.matching_status.matching and not stop.wait(0.05):
+                                pass
+                            waited_for_buffer_s += time.monotonic() - t0
+                            if stop.is_set():
+                                log.warning("stopping with episode %d unpublished (no buffer service)", seq)
+                                break
+                        episodes_pub.put(payload)
                         seq += 1
                         episodes += 1
                         last_return = ep.episode_return
@@ -137,6 +150,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
                             "policy_version": policy.version,
                             "paused": paused,
                             "paused_s": paused_s,
+                            "waited_for_buffer_s": waited_for_buffer_s,
                             "last_episode_return": last_return,
                         }
                     )

@@ -124,6 +124,11 @@ class LocalRun:
         )
         p.start()
         self.procs[name] = p
+        # For operators and tests: which PID is which component.
+        pids = {n: proc.pid for n, proc in self.procs.items()} | {"train": os.getpid()}
+        tmp = self.cfg.run_dir / ".pids.json.tmp"
+        tmp.write_text(json.dumps(pids))
+        tmp.replace(self.cfg.run_dir / "pids.json")
 
     def stop_all(self, order: list[str]) -> None:
         for name in order:

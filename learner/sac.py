@@ -116,7 +116,7 @@ class Sac:
 
     @property
     def alpha(self) -> float:
-        return float(self.log_alpha.exp())
+        return float(self.log_alpha.detach().exp())
 
     def update(self, obs, actions, rewards, next_obs, terminated, truncated) -> dict[str, float]:
         """One SAC step on a batch of tensors already on `self.device` (rewards per eq. 3)."""

@@ -1,0 +1,124 @@
+"""Real processes and real Zenoh sessions for the integration tests."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import socket
+import subprocess
+import sys
+import threading
+import time
+import uuid
+from pathlib import Path
+from typing import Any, Callable
+
+import zenoh
+
+REPO = Path(__file__).resolve().parent.parent
+
+
+def free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def wait_for(pred: Callable[[], Any], timeout: float, what: str, interval: float = 0.1) -> Any:
+    deadline = time.monotonic() + timeout
+    while time.monotonic() < deadline:
+        value = pred()
+        if value:
+            return value
+        time.sleep(interval)
+    raise AssertionError(f"timed out after {timeout:.0f}s waiting for {what}")
+
+
+class Processes:
+    """`silcr` subprocesses tagged through their environment, so leftovers can be found."""
+
+    def __init__(self, log_dir: Path) -> None:
+        self.tag = uuid.uuid4().hex
+        self.log_dir = log_dir
+        self.procs: dict[str, subprocess.Popen] = {}
+
+    def env(self) -> dict[str, str]:
+        return {**os.environ, "SILCR_TEST_TAG": self.tag, "PYTHONUNBUFFERED": "1"}
+
+    def start(self, name: str, *args: str, new_session: bool = False) -> subprocess.Popen:
+        log = open(self.log_dir / f"{name}.log", "w")
+        p = subprocess.Popen(
+            [sys.executable, "-m", "common.cli", *args],
+            stdout=log, stderr=subprocess.STDOUT, env=self.env(), cwd=REPO, start_new_session=new_session,
+        )
+        self.procs[name] = p
+        return p
+
+    def log(self, name: str) -> str:
+        return (self.log_dir / f"{name}.log").read_text(errors="replace")
+
+    def stop_all(self) -> None:
+        for p in self.procs.values():
+            if p.poll() is None:
+                p.send_signal(signal.SIGTERM)
+        for p in self.procs.values():
+            try:
+                p.wait(20)
+            except subprocess.TimeoutExpired:
+                p.kill()
+                p.wait(5)
+        for pid in tagged_pids(self.tag):
+            os.kill(pid, signal.SIGKILL)
+
+
+def tagged_pids(tag: str) -> list[int]:
+    """Live processes whose environment carries SILCR_TEST_TAG=tag (zombies excluded)."""
+    found = []
+    needle = f"SILCR_TEST_TAG={tag}".encode()
+    for d in Path("/proc").iterdir():
+        if not d.name.isdigit() or int(d.name) == os.getpid():
+            continue
+        try:
+            if needle in (d / "environ").read_bytes().split(b"\0"):
+                state = (d / "stat").read_text().rsplit(")", 1)[1].split()[0]
+                if state != "Z":
+                    found.append(int(d.name))
+        except OSError:
+            continue
+    return found
+
+
+def client_session(port: int) -> zenoh.Session:
+    """A plain Zenoh client built here, not by the project: what an outside tool would open."""
+    conf = zenoh.Config()
+    conf.insert_json5("mode", '"client"')
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("scouting/multicast/enabled", "false")
+    conf.insert_json5("transport/shared_memory/enabled", "false")
+    return zenoh.open(conf)
+
+
+class LatestJson:
+    """Latest JSON message per key under a key expression."""
+
+    def __init__(self, session: zenoh.Session, key_expr: str) -> None:
+        self._lock = threading.Lock()
+        self.latest: dict[str, dict] = {}
+        self.first: dict[str, dict] = {}
+        self.history: dict[str, list[dict]] = {}
+        self.encodings: dict[str, str] = {}
+        session.declare_subscriber(key_expr, self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        data = json.loads(sample.payload.to_bytes())
+        with self._lock:
+            key = str(sample.key_expr)
+            self.latest[key] = data
+            self.first.setdefault(key, data)
+            self.history.setdefault(key, []).append(data)
+            self.encodings[str(sample.key_expr)] = str(sample.encoding)
+
+    def get(self, key: str) -> dict | None:
+        with self._lock:
+            return self.latest.get(key)

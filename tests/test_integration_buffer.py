@@ -1,0 +1,118 @@
+"""The buffer service as a real process behind a real Zenoh router: the test plays actor and learner."""
+
+from __future__ import annotations
+
+import msgpack
+import numpy as np
+import pytest
+import zenoh
+
+from common import protocol as P
+from tests.conftest import make_episode
+from tests.helpers import LatestJson, Processes, client_session, free_port, wait_for
+
+RUN = "itest-buffer"
+KEYS = P.Keys(RUN)
+REQUIRED_STATS = {
+    "online_transitions", "online_capacity", "expert_transitions", "expert_capacity", "expert_episodes",
+    "expert_min_return", "expert_max_return", "episodes_received", "transitions_received", "episodes_rejected",
+    "batches_served", "samples_per_insert",
+}
+
+
+@pytest.fixture(scope="module")
+def system(tmp_path_factory):
+    port = free_port()
+    procs = Processes(tmp_path_factory.mktemp("buffer-logs"))
+    ep = f"tcp/127.0.0.1:{port}"
+    procs.start("router", "router", "--listen", ep)
+    procs.start(
+        "buffer", "buffer", "--run", RUN, "--env", "InvertedPendulum-v5", "--connect", ep,
+        "--learning-starts", "50", "--expert-capacity", "40", "--spi-tolerance", "1000", "--stats-interval", "0.2",
+    )
+    session = wait_for(lambda: _try_open(port), 20, "the router")
+    stats = LatestJson(session, KEYS.stats_all)
+    wait_for(lambda: stats.get(KEYS.stats_buffer), 30, "buffer stats")
+    yield procs, session, stats
+    session.close()
+    procs.stop_all()
+
+
+def _try_open(port):
+    try:
+        return client_session(port)
+    except zenoh.ZError:
+        return None
+
+
+def _publish(session, payloads):
+    pub = session.declare_publisher(KEYS.episodes, congestion_control=zenoh.CongestionControl.BLOCK)
+    wait_for(lambda: pub.matching_status.matching, 10, "the buffer's episode subscriber")
+    for p in payloads:
+        pub.put(p)
+    pub.undeclare()
+
+
+def _query(session, payload):
+    replies = list(session.get(KEYS.sample, payload=payload, timeout=10))
+    assert len(replies) == 1
+    return replies[0]
+
+
+def test_stats_are_json_with_the_contract_fields(system):
+    _, _, stats = system
+    s = stats.get(KEYS.stats_buffer)
+    assert REQUIRED_STATS <= s.keys()
+    assert stats.encodings[KEYS.stats_buffer].startswith("application/json")
+    assert s["online_capacity"] == 1_000_000 and s["expert_capacity"] == 40
+
+
+def test_not_ready_during_warmup(system):
+    _, session, _ = system
+    r = _query(session, P.SampleRequest(1, 8).encode())
+    reply = P.BatchReply.decode(r.ok.payload.to_bytes())
+    assert reply.status == "not_ready" and reply.reason == "warmup"
+
+
+def test_episodes_arrive_bad_ones_are_rejected_and_batches_are_mixed(system):
+    procs, session, stats = system
+    good = [P.EpisodeCodec.encode(make_episode(10, ret=float(i), seq=i, start=1000 * i)) for i in range(10)]
+    wrong_dim = P.EpisodeCodec.encode(make_episode(10, obs_dim=7))
+    nan = msgpack.unpackb(good[0], raw=False)
+    arr = np.frombuffer(nan["obs"][2], np.float32).copy()
+    arr[3] = np.nan
+    nan["obs"][2] = arr.tobytes()
+    bad = [b"garbage", wrong_dim, msgpack.packb(nan, use_bin_type=True)]
+    _publish(session, good[:5] + bad + good[5:])
+
+    s = wait_for(lambda: (x := stats.get(KEYS.stats_buffer)) and x["episodes_received"] + x["episodes_rejected"] >= 13 and x,
+                 20, "13 episodes to be counted")
+    assert s["episodes_received"] == 10 and s["transitions_received"] == 100
+    assert s["episodes_rejected"] == 3
+    assert s["rejections"] == {"not_msgpack": 1, "obs_dim": 1, "non_finite": 1}
+    # D_E holds the best whole episodes within M = 40: returns 6..9
+    assert s["expert_episodes"] == 4 and s["expert_min_return"] == 6.0 and s["expert_max_return"] == 9.0
+    assert procs.procs["buffer"].poll() is None
+
+    r = _query(session, P.SampleRequest(2, 16).encode())
+    reply = P.BatchReply.decode(r.ok.payload.to_bytes())
+    assert reply.status == "ok" and reply.meta["batches"] == 2
+    rewards = reply.arrays["rewards"].reshape(2, 16)
+    np.testing.assert_array_equal(rewards[:, :8], 0.0)
+    np.testing.assert_array_equal(rewards[:, 8:], 1.0)
+    expert_obs = reply.arrays["obs"].reshape(2, 16, 4)[:, 8:, 0]
+    assert (expert_obs >= 6000).all()  # only the top episodes are in D_E
+    np.testing.assert_array_equal(reply.arrays["next_obs"][:, 0], reply.arrays["obs"][:, 0] + 1)
+
+
+def test_bad_sample_requests_get_an_error_reply_and_the_service_lives(system):
+    procs, session, stats = system
+    for payload in (b"junk", msgpack.packb({"v": P.SCHEMA_VERSION, "batches": 0, "batch_size": 8}), None):
+        r = _query(session, payload)
+        assert r.err is not None
+        assert r.err.payload.to_string().split(":")[0] in {"not_msgpack", "bad_request"}
+    r = _query(session, P.SampleRequest(1, 8).encode())
+    assert P.BatchReply.decode(r.ok.payload.to_bytes()).status == "ok"
+    s = wait_for(lambda: (x := stats.get(KEYS.stats_buffer)) and x["sample_requests_rejected"] >= 3 and x, 10, "stats")
+    assert s["sample_requests_rejected"] == 3 and s["episodes_received"] == 10
+    assert procs.procs["buffer"].poll() is None
