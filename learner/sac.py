@@ -13,7 +13,8 @@ Equation numbers refer to the paper (`shared/paper/silcr.tex`):
 Automatic temperature tuning (not in the paper, in the official code):
   J(alpha) = E[-log_alpha * (log pi(a|s) + target_entropy)].
 
-Details follow the official code (docs/algorithm.md lists them): mean-squared
+Details follow the official code (docs/algorithm.md lists them), except the
+tanh log-probability correction, computed in its exact stable form (see `Actor.sample`): mean-squared
 critic loss without the 1/2, gradient-norm clip 40 per critic and for the actor,
 the actor step against the just-updated critics, the alpha step using that
 actor step's log-probabilities, soft target update with tau = 0.05 after every
@@ -31,7 +32,7 @@ import torch.nn.functional as F
 from torch import nn
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
-TANH_EPS = 1e-6  # official code: log(1 - tanh(u)^2 + 1e-6)
+LOG2 = float(np.log(2.0))
 
 
 def mlp(sizes: list[int]) -> nn.Sequential:
@@ -62,7 +63,10 @@ class Actor(nn.Module):
         u = mean + std * torch.randn_like(mean)
         a = torch.tanh(u)
         log_prob = (-0.5 * ((u - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
-        log_prob = log_prob - torch.log(1 - a.pow(2) + TANH_EPS).sum(-1)
+        # log(1 - tanh(u)^2) in its exact, stable form. The official log(1 - a^2 + 1e-6) has
+        # zero gradient once tanh saturates in float32, so a saturated policy never comes
+        # back and alpha grows without bound (seen on Reacher and Hopper; docs/algorithm.md).
+        log_prob = log_prob - (2.0 * (LOG2 - u - F.softplus(-2.0 * u))).sum(-1)
         return a, log_prob
 
     @torch.no_grad()

@@ -87,3 +87,11 @@ def test_every_subcommand_has_help():
     for cmd in ("train", "buffer", "learner", "actor", "router", "monitor"):
         r = _cli(cmd, "--help")
         assert r.returncode == 0 and "usage: silcr " + cmd in r.stdout
+
+
+@pytest.mark.parametrize("name", ["paper.toml", "smoke.toml"])
+def test_shipped_configs_load(name):
+    from tests.helpers import REPO
+
+    cfg = _resolve(["--config", str(REPO / "configs" / name)])
+    assert cfg.algo == "silcr"

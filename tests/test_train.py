@@ -1,0 +1,145 @@
+"""`silcr train` end to end: the launcher, the monitor, outside readers, Ctrl-C and a dying component."""
+
+from __future__ import annotations
+
+import csv
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+
+import pytest
+
+from common import protocol as P
+from learner.checkpoint import load_checkpoint
+from tests.helpers import REPO, LatestJson, Processes, client_session, free_port, tagged_pids, wait_for
+
+SMALL = [
+    "--env", "InvertedPendulum-v5", "--hidden", "32", "32", "--learning-starts", "500", "--batch-size", "64",
+    "--eval-episodes", "2", "--stats-interval", "0.3", "--spi-tolerance", "500",
+]
+REQUIRED_BUFFER_STATS = {
+    "online_transitions", "online_capacity", "expert_transitions", "expert_capacity", "expert_episodes",
+    "expert_min_return", "expert_max_return", "episodes_received", "transitions_received", "episodes_rejected",
+    "batches_served", "samples_per_insert",
+}
+
+
+def _train(procs: Processes, run: str, port: int, runs_dir, *extra: str, new_session: bool = False):
+    return procs.start(
+        "train", "train", "--run", run, "--runs-dir", str(runs_dir), "--zenoh-listen", f"tcp/127.0.0.1:{port}",
+        *SMALL, *extra, new_session=new_session,
+    )
+
+
+def _open_when_up(port):
+    def attempt():
+        try:
+            return client_session(port)
+        except Exception:
+            return None
+    return wait_for(attempt, 60, "the run's router")
+
+
+def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "e2e-train"
+    keys = P.Keys(run)
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "3000", "--eval-interval", "1000")
+    try:
+        session = _open_when_up(port)
+        stats = LatestJson(session, keys.stats_all)
+        buf = wait_for(lambda: stats.get(keys.stats_buffer), 60, "buffer stats from an outside client")
+        assert REQUIRED_BUFFER_STATS <= buf.keys()
+        learner = wait_for(lambda: stats.get(keys.stats_learner), 60, "learner stats")
+        assert {"updates", "policy_version", "env_steps", "last_eval_return"} <= learner.keys()
+        for i in (0, 1):
+            actor = wait_for(lambda: stats.get(keys.stats_actor(i)), 60, f"actor {i} stats")
+            assert {"episodes", "steps", "policy_version"} <= actor.keys()
+        mon = subprocess.run(
+            [sys.executable, "-m", "common.cli", "monitor", "--run", run, "--connect", f"tcp/127.0.0.1:{port}",
+             "--once", "--json", "--timeout", "20"],
+            capture_output=True, text=True, timeout=60, cwd=REPO,
+        )
+        assert mon.returncode == 0, mon.stdout + mon.stderr
+        snap = json.loads(mon.stdout)
+        assert snap["buffer"]["online_capacity"] == 1_000_000 and "updates" in snap["learner"]
+        session.close()
+        assert train.wait(300) == 0, procs.log("train")
+    finally:
+        procs.stop_all()
+
+    run_dir = tmp_path / "runs" / run
+    saved = tomllib.loads((run_dir / "config.toml").read_text())
+    assert saved["actors"] == 2 and saved["hidden"] == [32, 32] and saved["run"] == run
+    rows = list(csv.DictReader(open(run_dir / "progress.csv")))
+    assert {"time", "env_steps", "updates", "policy_version", "eval_return"} <= rows[0].keys()
+    assert len(rows) >= 3
+    assert int(rows[-1]["env_steps"]) >= 3000 and int(rows[-1]["updates"]) >= 2500 - 500
+    versions = [int(r["policy_version"]) for r in rows]
+    assert versions == sorted(versions) and versions[-1] > 0
+    ckpt = load_checkpoint(run_dir / "checkpoints" / "learner.pt")
+    assert ckpt["counters"]["updates"] == int(rows[-1]["updates"])
+    assert any((run_dir / "tb").iterdir())
+    assert tagged_pids(procs.tag) == [], "processes left behind"
+    assert "done" in procs.log("train")
+
+
+def test_ctrl_c_stops_everything_and_leaves_a_usable_checkpoint(tmp_path):
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "e2e-ctrlc"
+    keys = P.Keys(run)
+    # A new session stands in for the terminal: SIGINT goes to the whole process group, as Ctrl-C does.
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "100000000", new_session=True)
+    try:
+        session = _open_when_up(port)
+        stats = LatestJson(session, keys.stats_all)
+        wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 50, 120, "training to start")
+        session.close()
+        os.killpg(train.pid, signal.SIGINT)
+        assert train.wait(60) == 130, procs.log("train")
+        wait_for(lambda: tagged_pids(procs.tag) == [], 10, "every process to exit")
+    finally:
+        procs.stop_all()
+    ckpt_dir = tmp_path / "runs" / run / "checkpoints"
+    assert load_checkpoint(ckpt_dir / "learner.pt")["counters"]["updates"] > 50
+    assert [p.name for p in ckpt_dir.iterdir()] == ["learner.pt"]  # no temporary file left behind
+
+
+def test_a_dying_component_is_reported_and_everything_stops(tmp_path):
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "e2e-death"
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "1", "--total-steps", "100000000")
+    try:
+        pids_file = tmp_path / "runs" / run / "pids.json"
+        pids = wait_for(lambda: pids_file.exists() and "actor-0" in (d := json.loads(pids_file.read_text())) and d,
+                        60, "the components to start")
+        time.sleep(3)
+        os.kill(pids["buffer"], signal.SIGKILL)
+        assert train.wait(60) == 1
+        out = procs.log("train")
+        assert "buffer exited with code -9" in out
+        wait_for(lambda: tagged_pids(procs.tag) == [], 30, "every process to exit")
+    finally:
+        procs.stop_all()
+
+
+def test_router_port_in_use_is_a_clear_error(tmp_path):
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        s.listen()
+        port = s.getsockname()[1]
+        r = subprocess.run(
+            [sys.executable, "-m", "common.cli", "train", "--run", "busy", "--runs-dir", str(tmp_path),
+             "--zenoh-listen", f"tcp/127.0.0.1:{port}"],
+            capture_output=True, text=True, timeout=60, cwd=REPO,
+        )
+    assert r.returncode == 2 and "already in use" in r.stderr and "Traceback" not in r.stderr
