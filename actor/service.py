@@ -35,14 +35,27 @@ class _Rollout:
         self.version = version
 
 
-def _fetch_weights(session: zenoh.Session, keys: P.Keys, timeout: float) -> P.Weights | None:
-    for reply in session.get(keys.weights, timeout=timeout):
-        if reply.ok is not None:
-            try:
-                return P.decode_weights(reply.ok.payload.to_bytes())
-            except P.ProtocolError as e:
-                log.warning("ignoring malformed weights reply: %s", e)
-    return None
+def _fetch_weights(session: zenoh.Session, keys: P.Keys, wait_s: float, stop: StopFlag) -> P.Weights | None:
+    """Ask the learner for its latest weights, waiting up to `wait_s` for it to be reachable.
+
+    Right after a session opens, a query can find no queryable yet (discovery is
+    asynchronous), so wait for the learner's queryable to match before asking.
+    """
+    querier = session.declare_querier(keys.weights, timeout=10.0)
+    try:
+        deadline = time.monotonic() + wait_s
+        while not querier.matching_status.matching:
+            if time.monotonic() > deadline or stop.wait(0.05):
+                return None
+        for reply in querier.get():
+            if reply.ok is not None:
+                try:
+                    return P.decode_weights(reply.ok.payload.to_bytes())
+                except P.ProtocolError as e:
+                    log.warning("ignoring malformed weights reply: %s", e)
+        return None
+    finally:
+        querier.undeclare()
 
 
 def run_actor(cfg: Config, stop: StopFlag) -> int:
@@ -67,7 +80,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         )
         token = session.liveliness().declare_token(keys.alive("actor", cfg.actor_id))
 
-        weights = _fetch_weights(session, keys, timeout=3.0)
+        weights = _fetch_weights(session, keys, cfg.weights_wait, stop)
         if weights is None:
             log.info("no learner answered; acting with a local random policy until weights arrive")
             weights = initial_weights(spec.obs_dim, spec.act_dim, cfg.hidden, seed)

@@ -90,6 +90,7 @@ class Config:
     actor_id: int = _opt(0, {"actor"}, "this actor's id (also its seed offset)")
     envs_per_actor: int = _opt(1, {"train", "actor"}, "environments stepped by each actor with one batched forward pass")
     weights_poll_steps: int = _opt(50, {"train", "actor"}, "check for new weights every N steps")
+    weights_wait: float = _opt(15.0, {"train", "actor"}, "seconds an actor waits at start for the learner's weights before acting with its own random policy")
     # --- stats -----------------------------------------------------------------
     stats_interval: float = _opt(1.0, ALL, "seconds between stats messages")
 

@@ -146,6 +146,11 @@ class LocalRun:
                     p.join(5)
 
 
+def _sigterm_as_interrupt(signum: int, frame: object) -> None:
+    """`kill` of the launcher takes the same clean path as Ctrl-C."""
+    raise KeyboardInterrupt
+
+
 def run_train(cfg: Config) -> int:
     run_dir = cfg.run_dir
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -166,7 +171,7 @@ def run_train(cfg: Config) -> int:
     code = 0
     interrupted = False
     previous = signal.getsignal(signal.SIGTERM)
-    signal.signal(signal.SIGTERM, lambda *_: (_ for _ in ()).throw(KeyboardInterrupt()))
+    signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     try:
         run.start("router", cfg, "router")
         deadline = time.monotonic() + 15
