@@ -8,7 +8,7 @@ import torch
 
 from actor.policy import NumpyPolicy, initial_weights
 from common.protocol import Weights
-from learner.sac import Actor, Sac, SacHyper
+from learner.sac import Actor, Sac, SacHyper, TwinCritic
 
 
 def _sac(**hp) -> Sac:
@@ -30,10 +30,9 @@ def _batch(n=4, terminated=None, truncated=None, rewards=None):
 def _constant_critic(sac: Sac, value: float) -> None:
     """Make both target critics output `value` everywhere."""
     with torch.no_grad():
-        for tgt in (sac.q1_target, sac.q2_target):
-            for p in tgt.parameters():
-                p.zero_()
-            tgt.net[-1].bias.fill_(value)
+        for p in sac.critic_target.parameters():
+            p.zero_()
+        sac.critic_target.biases[-1].fill_(value)
 
 
 def _fixed_policy(sac: Sac, logp: float) -> None:
@@ -46,7 +45,8 @@ def _fixed_policy(sac: Sac, logp: float) -> None:
 
 def _expected_critic_loss(sac, obs, act, y):
     with torch.no_grad():
-        return float((((sac.q1(obs, act) - y) ** 2).mean() + ((sac.q2(obs, act) - y) ** 2).mean()) / 2)
+        q1, q2 = sac.critic(obs, act)
+        return float((((q1 - y) ** 2).mean() + ((q2 - y) ** 2).mean()) / 2)
 
 
 @pytest.mark.parametrize("time_limit_terminal", [False, True])
@@ -67,9 +67,9 @@ def test_soft_target_and_terminal_masking(time_limit_terminal):
 
 def test_target_critics_follow_with_tau():
     sac = _sac(tau=0.25)
-    before_tgt = [p.clone() for p in sac.q1_target.parameters()]
+    before_tgt = [p.clone() for p in sac.critic_target.parameters()]
     sac.update(*_batch())
-    for old, tgt, online in zip(before_tgt, sac.q1_target.parameters(), sac.q1.parameters()):
+    for old, tgt, online in zip(before_tgt, sac.critic_target.parameters(), sac.critic.parameters()):
         torch.testing.assert_close(tgt, 0.75 * old + 0.25 * online)
 
 
@@ -97,18 +97,18 @@ def test_constant_reward_one_drives_q_up_and_zero_keeps_it_low():
     for _ in range(300):
         sac.update(obs, act, r, obs, zeros, zeros)
     with torch.no_grad():
-        q_exp = sac.q1(expert_obs, torch.zeros(64, 2)).mean()
-        q_on = sac.q1(online_obs, torch.zeros(64, 2)).mean()
+        q_exp = sac.critic(expert_obs, torch.zeros(64, 2))[0].mean()
+        q_on = sac.critic(online_obs, torch.zeros(64, 2))[0].mean()
     assert q_exp > q_on + 0.5
 
 
 def test_gradient_clipping_bounds_the_step():
     sac = _sac(grad_clip=1e-3, lr=1.0)
-    before = [p.clone() for p in sac.q1.parameters()]
+    before = [p.clone() for p in sac.critic.parameters()]
     sac.update(*_batch(rewards=[1e6] * 4))
     # Adam's first step moves each parameter by about lr whatever the gradient size; clipping
     # must not produce NaN or blow up.
-    for b, p in zip(before, sac.q1.parameters()):
+    for b, p in zip(before, sac.critic.parameters()):
         assert torch.isfinite(p).all() and (p - b).abs().max() <= 1.0 + 1e-4
 
 
@@ -142,3 +142,33 @@ def test_initial_weights_shape_matches_learner_layout():
     w = initial_weights(5, 3, [16, 8], seed=0)
     assert {k: v.shape for k, v in w.params.items()} == {k: v.shape for k, v in sac.actor_arrays().items()}
     NumpyPolicy(w, 5, 3)  # loads
+
+
+def test_twin_critic_is_two_independent_mlps():
+    torch.manual_seed(0)
+    twin = TwinCritic(3, 2, [8, 4])
+    obs, act = torch.randn(5, 3), torch.randn(5, 2)
+    q = twin(obs, act)
+    x = torch.cat([obs, act], -1)
+    for j in (0, 1):
+        h = x
+        for i, (w, b) in enumerate(zip(twin.weights, twin.biases)):
+            h = h @ w[j] + b[j]
+            if i < 2:
+                h = torch.relu(h)
+        torch.testing.assert_close(q[j], h.squeeze(-1))
+    assert not torch.allclose(q[0], q[1])  # independently initialised
+
+
+def test_twin_critic_clips_each_critic_separately():
+    torch.manual_seed(0)
+    twin = TwinCritic(3, 2, [8])
+    obs, act = torch.randn(5, 3), torch.randn(5, 2)
+    q1, q2 = twin(obs, act)
+    (1000 * q1.sum() + 1e-3 * q2.sum()).backward()
+    small_before = [p.grad[1].clone() for p in twin.parameters()]
+    twin.clip_grad_norm_(1.0)
+    norm = lambda j: torch.sqrt(sum((p.grad[j] ** 2).sum() for p in twin.parameters()))  # noqa: E731
+    assert norm(0) == pytest.approx(1.0, rel=1e-4)
+    for before, p in zip(small_before, twin.parameters()):
+        torch.testing.assert_close(p.grad[1], before)  # the small one is left alone
