@@ -8,6 +8,7 @@ while the buffer says actors are ahead of the samples-per-insert ratio.
 
 from __future__ import annotations
 
+import collections
 import logging
 import time
 
@@ -91,10 +92,12 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         for j, env in enumerate(envs):
             obs, _ = env.reset(seed=seed + 10_000 * j)
             rollouts.append(_Rollout(np.asarray(obs, np.float32), policy.version))
-        episodes = steps = seq = 0
+        episodes = steps = seq = last_weights_poll = 0
         paused = False
         paused_s = 0.0
         waited_for_buffer_s = 0.0
+        # publish-to-load delay of the last weights (same clock only on one machine)
+        weights_latency_ms: collections.deque[float] = collections.deque(maxlen=100)
         last_return = None
         next_stats = time.monotonic()
 
@@ -142,15 +145,19 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
                         last_return = ep.episode_return
                         obs, _ = env.reset()
                         rollouts[j] = _Rollout(np.asarray(obs, np.float32), policy.version)
-                if steps % cfg.weights_poll_steps < len(envs):
-                    msg = weights_sub.try_recv()
-                    if msg is not None:
-                        try:
-                            new = P.decode_weights(msg.payload.to_bytes())
-                            if new.version > policy.version:
-                                policy = NumpyPolicy(new, spec.obs_dim, spec.act_dim)
-                        except P.ProtocolError as e:
-                            log.warning("ignoring malformed weights: %s", e)
+            if paused or steps - last_weights_poll >= cfg.weights_poll_steps:
+                # Paused actors keep polling, so they resume with the newest policy.
+                last_weights_poll = steps
+                msg = weights_sub.try_recv()
+                if msg is not None:
+                    try:
+                        new = P.decode_weights(msg.payload.to_bytes())
+                        if new.version > policy.version:
+                            policy = NumpyPolicy(new, spec.obs_dim, spec.act_dim)
+                            if new.sent_at:
+                                weights_latency_ms.append(1000 * (time.time() - new.sent_at))
+                    except P.ProtocolError as e:
+                        log.warning("ignoring malformed weights: %s", e)
             now = time.monotonic()
             if now >= next_stats:
                 stats_pub.put(
@@ -164,6 +171,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
                             "paused": paused,
                             "paused_s": paused_s,
                             "waited_for_buffer_s": waited_for_buffer_s,
+                            "weights_latency_ms_p50": float(np.median(weights_latency_ms)) if weights_latency_ms else None,
                             "last_episode_return": last_return,
                         }
                     )

@@ -22,6 +22,7 @@ ROLES_HELP = {
     "actor": "run one actor process",
     "router": "run a Zenoh router (the rendezvous point of a run)",
     "monitor": "show the live stats of a running system",
+    "bench": "run the benchmark suite (tables on screen, JSON files)",
 }
 
 
@@ -38,6 +39,12 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
         p = sub.add_parser(role, help=text, description=text, formatter_class=argparse.ArgumentDefaultsHelpFormatter
                            if role == "router" else argparse.HelpFormatter)
         subs[role] = p
+        if role == "bench":
+            p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "all"])
+            p.add_argument("--out", default="bench-results", help="directory for the JSON results (default: bench-results)")
+            p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="learner benchmark device (default: auto: CPU, and CUDA when present)")
+            p.add_argument("--quick", action="store_true", help="short measurements (a smoke test of the suite)")
+            continue
         if role == "router":
             p.add_argument("--listen", nargs="+", default=["tcp/127.0.0.1:7447"], help="endpoints to listen on")
             p.add_argument("--connect", nargs="+", default=[], help="other routers to connect to (multi-host)")
@@ -78,6 +85,12 @@ def main(argv: list[str] | None = None) -> int:
 
     from common.lifecycle import StopFlag, setup_logging
 
+    if role == "bench":
+        from pathlib import Path
+
+        from bench.cli import run_bench
+
+        return run_bench(args.which, Path(args.out), args.device, args.quick)
     if role == "router":
         setup_logging("router")
         from deploy.router import run_router

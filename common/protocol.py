@@ -304,6 +304,8 @@ class Weights:
     version: int
     params: dict[str, np.ndarray]
     arch: dict[str, Any] = field(default_factory=dict)
+    #: wall-clock time of publication (seconds since the epoch), for latency stats
+    sent_at: float = 0.0
 
 
 def encode_weights(w: Weights) -> bytes:
@@ -312,6 +314,7 @@ def encode_weights(w: Weights) -> bytes:
             "v": SCHEMA_VERSION,
             "kind": "weights",
             "version": int(w.version),
+            "sent_at": float(w.sent_at),
             "arch": dict(w.arch),
             "params": {k: pack_array(np.asarray(a, dtype="<f4")) for k, a in w.params.items()},
         },
@@ -330,7 +333,8 @@ def decode_weights(payload: bytes) -> Weights:
     for k, a in params.items():
         if not np.isfinite(a).all():
             raise ProtocolError("non_finite", f"weights {k!r} contain NaN or infinite values")
-    return Weights(version, params, arch)
+    sent_at = msg.get("sent_at", 0.0)
+    return Weights(version, params, arch, float(sent_at) if isinstance(sent_at, (int, float)) else 0.0)
 
 
 # ---------------------------------------------------------------------------

@@ -110,7 +110,7 @@ class Learner:
 
     # -- training ------------------------------------------------------------------
     def weights(self) -> P.Weights:
-        return P.Weights(self.policy_version, self.sac.actor_arrays(), self.sac.arch())
+        return P.Weights(self.policy_version, self.sac.actor_arrays(), self.sac.arch(), sent_at=time.time())
 
     def train_on(self, arrays: dict[str, np.ndarray], batches: int, batch_size: int) -> None:
         dev = self.device
@@ -141,6 +141,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
     finished = False
     start = time.monotonic()
     wait_times: collections.deque[float] = collections.deque(maxlen=2000)
+    policy_lag: collections.deque[float] = collections.deque(maxlen=200)
     update_time = 0.0
     sample_errors = 0
     not_ready = 0
@@ -237,6 +238,9 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
             if batch is not None:
                 lrn.env_steps = max(lrn.env_steps, int(batch.meta.get("env_steps", 0)))
                 if batch.status == "ok":
+                    # Policy lag: how many weight versions behind the learner the sampled data is.
+                    versions = batch.arrays["policy_version"]
+                    policy_lag.append(float(lrn.policy_version - versions[versions >= 0].mean()) if (versions >= 0).any() else 0.0)
                     t1 = time.monotonic()
                     lrn.train_on(batch.arrays, int(batch.meta["batches"]), int(batch.meta["batch_size"]))
                     update_time += time.monotonic() - t1
@@ -270,6 +274,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                     "batch_wait_ms_p50": float(np.percentile(waits, 50)),
                     "batch_wait_ms_p99": float(np.percentile(waits, 99)),
                     "not_ready_replies": not_ready,
+                    "policy_lag_mean": float(np.mean(policy_lag)) if policy_lag else None,
                     "sample_errors": sample_errors,
                     "device": str(lrn.device),
                 } | {k: P.finite_or_none(v) for k, v in lrn.last_losses.items()}

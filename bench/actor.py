@@ -1,0 +1,67 @@
+"""Actor benchmark: environment steps/s of a real actor process vs raw `env.step` of the same env."""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from common import protocol as P
+from common.envs import make_env
+
+from .procs import Components, LatestStats, wait_until
+from .timing import print_table, write_json
+
+
+def raw_step_rate(env_id: str, seconds: float) -> float:
+    env = make_env(env_id)
+    env.reset(seed=0)
+    env.action_space.seed(0)
+    actions = [env.action_space.sample() for _ in range(1000)]
+    n, t0 = 0, time.perf_counter()
+    while time.perf_counter() - t0 < seconds:
+        _, _, term, trunc, _ = env.step(actions[n % 1000])
+        n += 1
+        if term or trunc:
+            env.reset()
+    return n / (time.perf_counter() - t0)
+
+
+def actor_rate(env_id: str, envs: int, seconds: float) -> float:
+    run = f"bench-actor-{int(time.time())}"
+    keys = P.Keys(run)
+    comp = Components()
+    try:
+        comp.start("router")
+        comp.start("buffer", "--run", run, "--env", env_id, "--no-throttle", "--stats-interval", "0.5")
+        comp.start("actor", "--run", run, "--env", env_id, "--envs-per-actor", str(envs), "--weights-wait", "0",
+                   "--stats-interval", "0.5")
+        with comp.session() as s:
+            stats = LatestStats(s, keys.stats_actor(0))
+            wait_until(lambda: stats.get(keys.stats_actor(0)).get("steps", 0) > 500, 60, "the actor to run")
+            a, t0 = stats.get(keys.stats_actor(0))["steps"], time.perf_counter()
+            time.sleep(seconds)
+            b, t1 = stats.get(keys.stats_actor(0))["steps"], time.perf_counter()
+        return (b - a) / (t1 - t0)
+    finally:
+        comp.stop()
+
+
+def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
+    seconds = 3.0 if quick else 10.0
+    rows, results = [], {}
+    for env_id in ("Hopper-v5", "Humanoid-v5"):
+        for envs in (1, 4):
+            raw_before = raw_step_rate(env_id, seconds / 3)
+            steps = actor_rate(env_id, envs, seconds)
+            raw_after = raw_step_rate(env_id, seconds / 3)
+            raw = float(np.mean([raw_before, raw_after]))
+            results[f"{env_id}/envs={envs}"] = {"actor_steps_per_s": steps, "raw_env_steps_per_s": raw, "ratio": steps / raw}
+            rows.append([env_id, envs, steps, raw, steps / raw])
+    print_table("actor (800-400 policy, buffer running, no throttle)",
+                ["env", "envs/actor", "actor steps/s", "raw env.step/s", "ratio"], rows)
+    payload = {"results": results}
+    write_json(out_dir, "actor", payload)
+    return payload

@@ -1,0 +1,138 @@
+"""Buffer benchmark: inserts and mixed batches per second, in-process and over Zenoh; memory per transition.
+
+The reference is the learner's batch demand measured in the same run (updates/s
+of `learner.sac.Sac` at the paper's networks on this machine), so the headline
+figure is "how many learners this buffer can feed".
+"""
+
+from __future__ import annotations
+
+import time
+import tracemalloc
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+import zenoh
+
+from buffer_service.service import ReplayState
+from common import protocol as P
+from common.config import Config
+from common.envs import EnvSpec
+from learner.sac import Sac, SacHyper
+
+from .procs import Components, LatestStats, wait_until
+from .reference_sac import random_batch
+from .timing import print_table, rate, write_json
+
+TASKS = {"Hopper": "Hopper-v5", "Humanoid": "Humanoid-v5"}
+
+
+def _episodes(spec: EnvSpec, n: int, length: int, seed: int = 0) -> list[bytes]:
+    g = np.random.default_rng(seed)
+    out = []
+    for i in range(n):
+        rewards = np.zeros(length, np.float32)
+        rewards[-1] = g.normal()
+        ep = P.Episode(0, i, 0, float(rewards.sum(dtype=np.float64)), False, True,
+                       g.normal(size=(length + 1, spec.obs_dim)).astype(np.float32),
+                       g.uniform(-1, 1, (length, spec.act_dim)).astype(np.float32), rewards)
+        out.append(P.EpisodeCodec.encode(ep))
+    return out
+
+
+def learner_demand(obs_dim: int, act_dim: int, n: int = 10) -> float:
+    sac = Sac(obs_dim, act_dim, [800, 400], SacHyper(), torch.device("cpu"))
+    b = random_batch(obs_dim, act_dim, 128, torch.device("cpu"))
+    sac.update(*b)
+    return rate(lambda: sac.update(*b), n)
+
+
+def memory_per_transition(spec: EnvSpec, length: int, transitions: int) -> tuple[float, float]:
+    """Measured bytes per stored transition (tracemalloc) and the minimum (obs + action + reward + flag)."""
+    cfg = Config(run="bench", env=spec.env_id, online_capacity=transitions, expert_capacity=max(1, transitions // 20))
+    payloads = _episodes(spec, transitions // length, length)
+    tracemalloc.start()
+    before = tracemalloc.take_snapshot()
+    state = ReplayState(cfg, spec)
+    for p in payloads:
+        state.ingest(p)
+    del payloads
+    after = tracemalloc.take_snapshot()
+    tracemalloc.stop()
+    used = sum(s.size_diff for s in after.compare_to(before, "filename"))
+    minimum = (spec.obs_dim + spec.act_dim + 1) * 4 + 1
+    return used / len(state.fifo), float(minimum)
+
+
+def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
+    results: dict[str, Any] = {}
+    rows = []
+    for name, env_id in TASKS.items():
+        spec = EnvSpec.of(env_id)
+        demand = learner_demand(spec.obs_dim, spec.act_dim, 3 if quick else 10)
+        # in-process
+        cfg = Config(run="bench", env=env_id, learning_starts=1000, spi_tolerance=1e9)
+        payloads = _episodes(spec, 10 if quick else 50, 1000)
+        timings = []
+        for _ in range(5):  # median of repeats: the first can meet torch's OpenMP threads still spinning
+            state = ReplayState(cfg, spec)
+            t0 = time.perf_counter()
+            for p in payloads:
+                state.ingest(p)
+            timings.append(time.perf_counter() - t0)
+        inserts = 1000 * len(payloads) / float(np.median(timings))
+        req = P.SampleRequest(1, 128).encode()
+        batches = rate(lambda: state.answer(req).encode(), 50 if quick else 300)
+        # over Zenoh, buffer in its own process
+        zinserts, zbatches = _over_zenoh(env_id, payloads, quick)
+        bytes_per, minimum = memory_per_transition(spec, 1000, 20_000 if quick else 100_000)
+        results[name] = {
+            "learner_updates_per_s": demand, "inserts_per_s_in_process": inserts, "batches_per_s_in_process": batches,
+            "inserts_per_s_zenoh": zinserts, "batches_per_s_zenoh": zbatches,
+            "zenoh_batches_vs_learner_demand": zbatches / demand,
+            "bytes_per_transition": bytes_per, "minimum_bytes_per_transition": minimum,
+            "memory_overhead": bytes_per / minimum - 1,
+        }
+        rows.append([name, inserts, batches, zinserts, zbatches, demand, zbatches / demand, bytes_per, minimum])
+    print_table("buffer (batch 128, 1000-step episodes)",
+                ["task", "inserts/s", "batches/s", "inserts/s zenoh", "batches/s zenoh", "learner/s", "zenoh x learner",
+                 "B/transition", "minimum B"], rows)
+    payload = {"results": results}
+    write_json(out_dir, "buffer", payload)
+    return payload
+
+
+def _over_zenoh(env_id: str, payloads: list[bytes], quick: bool) -> tuple[float, float]:
+    run = f"bench-buffer-{int(time.time())}"
+    keys = P.Keys(run)
+    comp = Components()
+    try:
+        comp.start("router")
+        comp.start("buffer", "--run", run, "--env", env_id, "--learning-starts", "1000", "--spi-tolerance", "1e9",
+                   "--stats-interval", "0.2")
+        with comp.session() as s:
+            stats = LatestStats(s, keys.stats_buffer)
+            pub = s.declare_publisher(keys.episodes, congestion_control=zenoh.CongestionControl.BLOCK)
+            wait_until(lambda: pub.matching_status.matching, 60, "the buffer service")
+            t0 = time.perf_counter()
+            for p in payloads:
+                pub.put(p)
+            wait_until(lambda: stats.get(keys.stats_buffer).get("episodes_received", 0) >= len(payloads), 120, "episodes")
+            inserts = 1000 * len(payloads) / (time.perf_counter() - t0)
+            querier = s.declare_querier(keys.sample, timeout=10, consolidation=zenoh.ConsolidationMode.NONE)
+            req = P.SampleRequest(4, 128).encode()
+            n = 50 if quick else 250
+            in_flight = [querier.get(payload=req) for _ in range(4)]
+            t0 = time.perf_counter()
+            got = 0
+            for i in range(n):
+                reply = next(iter(in_flight.pop(0)))
+                got += P.BatchReply.decode(reply.ok.payload.to_bytes()).meta["batches"]
+                if i + 4 < n:
+                    in_flight.append(querier.get(payload=req))
+            batches = got / (time.perf_counter() - t0)
+        return inserts, batches
+    finally:
+        comp.stop()

@@ -1,0 +1,27 @@
+"""`silcr bench [learner|buffer|actor|e2e|all]`: run benchmarks, print tables, write JSON."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+
+def run_bench(which: str, out_dir: Path, device: str, quick: bool) -> int:
+    from . import actor, buffer, e2e, learner
+
+    if which in ("learner", "all"):
+        learner.run(out_dir, "cpu", quick)
+        if device in ("cuda", "auto"):
+            import torch
+
+            if torch.cuda.is_available():
+                learner.run(out_dir, "cuda", quick)
+            elif device == "cuda":
+                print("silcr bench: CUDA is not available; skipped the GPU learner benchmark")
+    if which in ("buffer", "all"):
+        buffer.run(out_dir, quick)
+    if which in ("actor", "all"):
+        actor.run(out_dir, quick)
+    if which in ("e2e", "all"):
+        e2e.run(out_dir, quick)
+    print(f"results written to {out_dir}/")
+    return 0

@@ -1,0 +1,48 @@
+"""The benchmark suite compares like with like: the plain reference does the same maths as `Sac`."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+from bench.reference_sac import PlainSac, random_batch, update_flops
+from learner.sac import Sac, SacHyper
+
+
+def _copy_into_plain(sac: Sac, plain: PlainSac) -> None:
+    plain.actor.load_state_dict(sac.actor.state_dict())
+    with torch.no_grad():
+        for j, (q, qt) in enumerate(((plain.q1, plain.q1_t), (plain.q2, plain.q2_t))):
+            for twin, dst in ((sac.critic, q), (sac.critic_target, qt)):
+                linears = [m for m in dst.net.modules() if isinstance(m, torch.nn.Linear)]
+                for lin, w, b in zip(linears, twin.weights, twin.biases):
+                    lin.weight.copy_(w[j].T)
+                    lin.bias.copy_(b[j, 0])
+
+
+@pytest.mark.parametrize("rewards_scale", [1.0, 1e4])  # 1e4 makes gradient clipping bite
+def test_optimised_update_equals_the_plain_reference(rewards_scale):
+    torch.manual_seed(0)
+    sac = Sac(5, 2, [32, 16], SacHyper(), torch.device("cpu"))
+    plain = PlainSac(5, 2, [32, 16], torch.device("cpu"))
+    _copy_into_plain(sac, plain)
+    obs, act, rew, nxt, term, trunc = random_batch(5, 2, 64, torch.device("cpu"))
+    rew = rew * rewards_scale
+    for step in range(3):
+        torch.manual_seed(100 + step)
+        sac.update(obs, act, rew, nxt, term, trunc)
+        torch.manual_seed(100 + step)
+        plain.update(obs, act, rew, nxt, term, trunc)
+    for (name, p), q in zip(sac.actor.state_dict().items(), plain.actor.state_dict().values()):
+        torch.testing.assert_close(p, q, rtol=1e-4, atol=1e-5, msg=name)
+    lin = [m for m in plain.q2.net.modules() if isinstance(m, torch.nn.Linear)][0]
+    torch.testing.assert_close(sac.critic.weights[0][1], lin.weight.T, rtol=1e-4, atol=1e-5)
+    torch.testing.assert_close(sac.log_alpha, plain.log_alpha, rtol=1e-5, atol=1e-6)
+
+
+def test_update_flops_counts_each_matmul():
+    # obs 1, act 1, one hidden layer of 1, batch 1: every linear layer costs 2 FLOPs forward.
+    # actor: trunk 1x1 + mean + log_std = 3 layers -> 6; critic: (2x1) + (1x1) = 4 + 2 = 6.
+    actor, critic = 6, 6
+    expected = (actor + 2 * critic) + 2 * 3 * critic + 3 * actor + 2 * 2 * critic
+    assert update_flops(1, 1, [1], 1) == expected
