@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import collections
 import logging
+import os
 import time
 
 import numpy as np
@@ -64,6 +65,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
     keys = P.Keys(cfg.run)
     seed = cfg.seed + cfg.actor_id
     rng = np.random.default_rng(seed)
+    incarnation = int.from_bytes(os.urandom(7), "little")
     envs = [make_env(cfg.env, cfg.actor_reward) for _ in range(cfg.envs_per_actor)]
     conf = session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
     with open_session(conf) as session:
@@ -126,6 +128,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
                         ep = P.Episode(
                             cfg.actor_id, seq, ro.version, float(rewards.sum(dtype=np.float64)),
                             bool(terminated), bool(truncated), np.stack(ro.obs), np.stack(ro.actions), rewards,
+                            incarnation,
                         )
                         payload = P.EpisodeCodec.encode(ep)
                         # With no buffer service subscribed a put would vanish: hold the episode

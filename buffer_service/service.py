@@ -55,6 +55,8 @@ class ReplayState:
         self.sample_requests_rejected = 0
         self.not_ready_replies = 0
         self.last_episode_version = -1
+        # Last sequence number per (actor id, incarnation): an episode is never stored twice.
+        self.last_seq: dict[tuple[int, int], int] = {}
         self.started = time.time()
 
     # -- episodes ---------------------------------------------------------------
@@ -62,9 +64,17 @@ class ReplayState:
         """Store one episode message; raise `ProtocolError` (and count it) if it is rejected."""
         try:
             ep = self.codec.decode(payload)
+            sender = (ep.actor_id, ep.incarnation)
+            if ep.seq <= self.last_seq.get(sender, -1):
+                raise P.ProtocolError(
+                    "duplicate", f"actor {ep.actor_id} (incarnation {ep.incarnation}) sent seq {ep.seq} again"
+                )
         except P.ProtocolError as e:
             self.rejections[e.reason] += 1
             raise
+        if len(self.last_seq) >= 65_536:  # bound the table: forget the oldest senders
+            del self.last_seq[next(iter(self.last_seq))]
+        self.last_seq[sender] = ep.seq
         self.fifo.add(ep)
         if self.heap is not None:
             self.heap.offer(ep)

@@ -87,6 +87,7 @@ class Config:
     requests_in_flight: int = _opt(2, {"train", "learner"}, "sample queries kept in flight so the learner never waits on the network")
     # --- actors ----------------------------------------------------------------
     actors: int = _opt(1, {"train"}, "number of actor processes")
+    max_restarts: int = _opt(5, {"train"}, "times `silcr train` restarts an actor that dies before giving up")
     actor_id: int = _opt(0, {"actor"}, "this actor's id (also its seed offset)")
     envs_per_actor: int = _opt(1, {"train", "actor"}, "environments stepped by each actor with one batched forward pass")
     weights_poll_steps: int = _opt(50, {"train", "actor"}, "check for new weights every N steps")
@@ -215,6 +216,7 @@ def validate(cfg: Config, role: str) -> None:
     positive("learning_starts", 0)
     positive("actor_id", 0)
     positive("torch_threads", 0)
+    positive("max_restarts", 0)
     positive("spi_tolerance", 1)
     if cfg.batches_per_request > 64:
         raise ConfigError("--batches-per-request", f"must be <= 64, got {cfg.batches_per_request}")

@@ -206,6 +206,8 @@ class Episode:
     obs: np.ndarray
     actions: np.ndarray
     rewards: np.ndarray
+    #: random id of the actor process that sent it: a restarted actor starts `seq` again
+    incarnation: int = 0
 
     @property
     def length(self) -> int:
@@ -234,6 +236,7 @@ class EpisodeCodec:
                 "v": SCHEMA_VERSION,
                 "kind": "episode",
                 "actor_id": int(ep.actor_id),
+                "incarnation": int(ep.incarnation),
                 "seq": int(ep.seq),
                 "policy_version": int(ep.policy_version),
                 "episode_return": float(ep.episode_return),
@@ -291,7 +294,10 @@ class EpisodeCodec:
         total = float(rewards.sum(dtype=np.float64))
         if abs(total - ret) > 1e-3 * max(1.0, abs(ret)):
             raise ProtocolError("return_mismatch", f"episode_return {ret} differs from the sum of rewards {total}")
-        return Episode(actor_id, seq, version, float(ret), terminated, truncated, obs, actions, rewards)
+        incarnation = msg.get("incarnation", 0)
+        if not isinstance(incarnation, int) or isinstance(incarnation, bool) or not 0 <= incarnation < 2**63:
+            raise ProtocolError("bad_field", "field 'incarnation' must be an int in [0, 2**63)")
+        return Episode(actor_id, seq, version, float(ret), terminated, truncated, obs, actions, rewards, incarnation)
 
 
 # ---------------------------------------------------------------------------

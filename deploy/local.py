@@ -116,9 +116,12 @@ class LocalRun:
         self.cfg = cfg
         self.ctx = mp.get_context("spawn")
         self.procs: dict[str, mp.process.BaseProcess] = {}
+        self.specs: dict[str, tuple[str, Config]] = {}
+        self.restarts: dict[str, int] = {}
         self.logs = cfg.run_dir / "logs"
 
     def start(self, role: str, cfg: Config, name: str) -> None:
+        self.specs[name] = (role, cfg)
         p = self.ctx.Process(
             target=component_main, args=(role, cfg.to_dict(), str(self.logs / f"{name}.log")), name=f"silcr-{name}"
         )
@@ -240,8 +243,20 @@ def _watch(run: LocalRun, cfg: Config, stats: _Stats) -> int:
                 last_print = time.monotonic()
             if run.procs["learner"].exitcode == 0:
                 return 0
-            for name, p in run.procs.items():
+            for name, p in list(run.procs.items()):
                 if p.exitcode is None:
+                    continue
+                if name.startswith("actor-") and p.exitcode != 0 and run.restarts.get(name, 0) < cfg.max_restarts:
+                    # Actors hold no state that matters: start a fresh one (new incarnation).
+                    run.restarts[name] = run.restarts.get(name, 0) + 1
+                    message = (f"silcr train: {name} exited with code {p.exitcode}; restarting it "
+                               f"({run.restarts[name]}/{cfg.max_restarts})")
+                    if interactive:
+                        progress.console.print(message)
+                    else:
+                        print(message, flush=True)
+                    role, acfg = run.specs[name]
+                    run.start(role, acfg, name)
                     continue
                 if p.exitcode == 0 and name != "learner":
                     # The learner's shutdown message ends the others first; give it time to exit too.

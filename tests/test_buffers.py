@@ -164,3 +164,26 @@ def test_sac_batches_use_env_rewards_from_online_only():
     seq = out["obs"][:, 0] // 1000
     expected = np.where(t == 9, seq + 1, 0.0)
     np.testing.assert_array_equal(out["rewards"], expected)
+
+
+# --- the service state: duplicates --------------------------------------------------
+
+
+def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
+    from buffer_service.service import ReplayState
+    from common import protocol as P
+    from common.config import Config
+    from common.envs import EnvSpec
+
+    state = ReplayState(Config(run="t", env="InvertedPendulum-v5"), EnvSpec.of("InvertedPendulum-v5"))
+    first = make_episode(5, ret=1.0, seq=0)
+    first.incarnation = 7
+    state.ingest(P.EpisodeCodec.encode(first))
+    with pytest.raises(P.ProtocolError) as info:
+        state.ingest(P.EpisodeCodec.encode(first))
+    assert info.value.reason == "duplicate"
+    restarted = make_episode(5, ret=1.0, seq=0)
+    restarted.incarnation = 8
+    state.ingest(P.EpisodeCodec.encode(restarted))
+    assert state.episodes_received == 2 and len(state.fifo) == 10
+    assert state.rejections == {"duplicate": 1}

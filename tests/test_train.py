@@ -130,6 +130,30 @@ def test_a_dying_component_is_reported_and_everything_stops(tmp_path):
         procs.stop_all()
 
 
+def test_a_killed_actor_is_restarted_and_the_run_finishes(tmp_path):
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "e2e-restart"
+    keys = P.Keys(run)
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "4000")
+    try:
+        session = _open_when_up(port)
+        stats = LatestJson(session, keys.stats_all)
+        wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 20, 120, "training to start")
+        pids_file = tmp_path / "runs" / run / "pids.json"
+        old = json.loads(pids_file.read_text())["actor-0"]
+        os.kill(old, signal.SIGKILL)
+        wait_for(lambda: json.loads(pids_file.read_text())["actor-0"] != old, 30, "actor-0 to be restarted")
+        assert train.wait(300) == 0, procs.log("train")
+        buf = stats.get(keys.stats_buffer)
+        assert buf["episodes_rejected"] == 0  # nothing stored twice, nothing malformed
+        session.close()
+    finally:
+        procs.stop_all()
+    assert "actor-0 exited with code -9; restarting it (1/5)" in procs.log("train")
+    assert tagged_pids(procs.tag) == []
+
+
 def test_router_port_in_use_is_a_clear_error(tmp_path):
     import socket
 
