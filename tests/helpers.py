@@ -99,6 +99,17 @@ def client_session(port: int) -> zenoh.Session:
     return zenoh.open(conf)
 
 
+def client_when_up(port: int, timeout: float = 60) -> zenoh.Session:
+    """A `client_session` once the router on `port` accepts it."""
+    def attempt() -> zenoh.Session | None:
+        try:
+            return client_session(port)
+        except zenoh.ZError:
+            return None
+
+    return wait_for(attempt, timeout, f"the router on port {port}")
+
+
 class LatestJson:
     """Latest JSON message per key under a key expression."""
 

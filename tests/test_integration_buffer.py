@@ -9,7 +9,7 @@ import zenoh
 
 from common import protocol as P
 from tests.conftest import make_episode
-from tests.helpers import LatestJson, Processes, client_session, free_port, wait_for
+from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
 
 RUN = "itest-buffer"
 KEYS = P.Keys(RUN)
@@ -30,19 +30,12 @@ def system(tmp_path_factory):
         "buffer", "buffer", "--run", RUN, "--env", "InvertedPendulum-v5", "--connect", ep,
         "--learning-starts", "50", "--expert-capacity", "40", "--spi-tolerance", "1000", "--stats-interval", "0.2",
     )
-    session = wait_for(lambda: _try_open(port), 20, "the router")
+    session = client_when_up(port)
     stats = LatestJson(session, KEYS.stats_all)
     wait_for(lambda: stats.get(KEYS.stats_buffer), 30, "buffer stats")
     yield procs, session, stats
     session.close()
     procs.stop_all()
-
-
-def _try_open(port):
-    try:
-        return client_session(port)
-    except zenoh.ZError:
-        return None
 
 
 def _publish(session, payloads):

@@ -9,7 +9,7 @@ import pytest
 import zenoh
 
 from common import protocol as P
-from tests.helpers import LatestJson, Processes, client_session, free_port, wait_for
+from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
 
 RUN = "itest-system"
 KEYS = P.Keys(RUN)
@@ -31,18 +31,11 @@ def system(tmp_path_factory):
         "--total-steps", "1000000000", "--torch-threads", "1",
     )
     procs.start("actor-0", "actor", *COMMON, *NETS, "--connect", ep, "--actor-id", "0", "--weights-poll-steps", "5")
-    session = wait_for(lambda: _try_open(port), 20, "the router")
+    session = client_when_up(port)
     stats = LatestJson(session, KEYS.stats_all)
     yield procs, session, stats, ep
     session.close()
     procs.stop_all()
-
-
-def _try_open(port):
-    try:
-        return client_session(port)
-    except zenoh.ZError:
-        return None
 
 
 def _learner(stats):

@@ -15,7 +15,7 @@ import pytest
 
 from common import protocol as P
 from learner.checkpoint import load_checkpoint
-from tests.helpers import REPO, LatestJson, Processes, client_session, free_port, tagged_pids, wait_for
+from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, tagged_pids, wait_for
 
 SMALL = [
     "--env", "InvertedPendulum-v5", "--hidden", "32", "32", "--learning-starts", "500", "--batch-size", "64",
@@ -35,15 +35,6 @@ def _train(procs: Processes, run: str, port: int, runs_dir, *extra: str, new_ses
     )
 
 
-def _open_when_up(port):
-    def attempt():
-        try:
-            return client_session(port)
-        except Exception:
-            return None
-    return wait_for(attempt, 60, "the run's router")
-
-
 def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
     procs = Processes(tmp_path)
     port = free_port()
@@ -51,7 +42,7 @@ def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
     keys = P.Keys(run)
     train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "3000", "--eval-interval", "1000")
     try:
-        session = _open_when_up(port)
+        session = client_when_up(port)
         stats = LatestJson(session, keys.stats_all)
         buf = wait_for(lambda: stats.get(keys.stats_buffer), 60, "buffer stats from an outside client")
         assert REQUIRED_BUFFER_STATS <= buf.keys()
@@ -97,7 +88,7 @@ def test_ctrl_c_stops_everything_and_leaves_a_usable_checkpoint(tmp_path):
     # A new session stands in for the terminal: SIGINT goes to the whole process group, as Ctrl-C does.
     train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "100000000", new_session=True)
     try:
-        session = _open_when_up(port)
+        session = client_when_up(port)
         stats = LatestJson(session, keys.stats_all)
         wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 50, 120, "training to start")
         session.close()
@@ -137,7 +128,7 @@ def test_a_killed_actor_is_restarted_and_the_run_finishes(tmp_path):
     keys = P.Keys(run)
     train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "4000")
     try:
-        session = _open_when_up(port)
+        session = client_when_up(port)
         stats = LatestJson(session, keys.stats_all)
         wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 20, 120, "training to start")
         pids_file = tmp_path / "runs" / run / "pids.json"
