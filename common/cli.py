@@ -23,6 +23,8 @@ ROLES_HELP = {
     "router": "run a Zenoh router (the rendezvous point of a run)",
     "monitor": "show the live stats of a running system",
     "bench": "run the benchmark suite (tables on screen, JSON files)",
+    "plot": "learning curves (mean +- std over seeds) and a summary table from run directories",
+    "eval": "evaluate a checkpoint's deterministic policy, optionally recording a video",
 }
 
 
@@ -39,6 +41,19 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
         p = sub.add_parser(role, help=text, description=text, formatter_class=argparse.ArgumentDefaultsHelpFormatter
                            if role == "router" else argparse.HelpFormatter)
         subs[role] = p
+        if role == "plot":
+            p.add_argument("runs", nargs="+", metavar="RUN_DIR", help="run directories (each with config.toml and progress.csv)")
+            p.add_argument("-o", "--out", default="curves.png", help="figure file; a .png also gets an .svg beside it (default: curves.png)")
+            p.add_argument("--expert", type=float, default=None, help="draw a dashed horizontal line at this return")
+            p.add_argument("--table", default=None, help="also write the Markdown summary (final and best return) to this file")
+            p.add_argument("--title", default="", help="figure title")
+            continue
+        if role == "eval":
+            p.add_argument("checkpoint", help="a learner checkpoint (runs/<run>/checkpoints/learner.pt)")
+            p.add_argument("--episodes", type=int, default=10, help="evaluation episodes (default: 10)")
+            p.add_argument("--seed", type=int, default=12345, help="seed of the first episode (default: 12345)")
+            p.add_argument("--video", default=None, help="write the first episode as an MP4, rendered off-screen")
+            continue
         if role == "bench":
             p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "all"])
             p.add_argument("--out", default="bench-results", help="directory for the JSON results (default: bench-results)")
@@ -85,6 +100,10 @@ def main(argv: list[str] | None = None) -> int:
 
     from common.lifecycle import StopFlag, setup_logging
 
+    if role == "plot":
+        return _plot(args, subs[role])
+    if role == "eval":
+        return _eval(args, subs[role])
     if role == "bench":
         from pathlib import Path
 
@@ -134,6 +153,53 @@ def main(argv: list[str] | None = None) -> int:
     from actor.service import run_actor
 
     return run_actor(cfg, stop)
+
+
+def _plot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from pathlib import Path
+
+    from common.curves import load_run, plot, summary_markdown
+
+    try:
+        runs = [load_run(Path(r)) for r in args.runs]
+    except ValueError as e:
+        parser.error(str(e))
+    out = Path(args.out)
+    if out.suffix not in (".png", ".svg", ".pdf"):
+        parser.error(f"-o {args.out}: use a .png, .svg or .pdf file name")
+    plot(runs, out, args.expert, args.title)
+    table = summary_markdown(runs)
+    print(table, end="")
+    if args.table:
+        Path(args.table).write_text(table)
+    print(f"wrote {out}" + (f" and {out.with_suffix('.svg')}" if out.suffix == ".png" else ""))
+    return 0
+
+
+def _eval(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from pathlib import Path
+
+    from learner.checkpoint import CheckpointError, load_checkpoint
+
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    try:
+        payload = load_checkpoint(Path(args.checkpoint))
+    except CheckpointError as e:
+        parser.error(str(e))
+    from common.envs import EnvSpec
+    from learner.evaluate import evaluate, weights_from_checkpoint
+
+    weights, env_id = weights_from_checkpoint(payload)
+    try:
+        mean, std, length = evaluate(weights, EnvSpec.of(env_id), args.episodes, args.seed,
+                                     Path(args.video) if args.video else None)
+    except RuntimeError as e:
+        print(f"silcr eval: error: {e}", file=sys.stderr)
+        return 1
+    print(f"{env_id}, policy version {weights.version}: return {mean:.1f} ± {std:.1f} over {args.episodes} "
+          f"episodes (mean length {length:.0f})" + (f"; video: {args.video}" if args.video else ""))
+    return 0
 
 
 if __name__ == "__main__":

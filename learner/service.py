@@ -18,14 +18,14 @@ import numpy as np
 import torch
 import zenoh
 
-from actor.policy import NumpyPolicy
 from common import protocol as P
 from common.config import Config
-from common.envs import EnvSpec, make_env
+from common.envs import EnvSpec
 from common.lifecycle import StopFlag
 from common.zenoh_session import open_session, session_config
 
 from .checkpoint import load_checkpoint, save_checkpoint
+from .evaluate import evaluate
 from .progress import ProgressLog
 from .sac import Sac, SacHyper
 
@@ -40,27 +40,6 @@ def pick_device(name: str) -> torch.device:
     if name == "cuda" and not torch.cuda.is_available():
         raise ValueError("--device cuda: CUDA is not available on this machine")
     return torch.device(name)
-
-
-def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int) -> tuple[float, float, float]:
-    """Mean and std of the dense return of the deterministic policy (tanh of the mean), and mean length."""
-    policy = NumpyPolicy(weights, spec.obs_dim, spec.act_dim)
-    env = make_env(spec.env_id, "dense")
-    returns, lengths = [], []
-    try:
-        for i in range(episodes):
-            obs, _ = env.reset(seed=seed + i)
-            total, n, done = 0.0, 0, False
-            while not done:
-                obs, r, terminated, truncated, _ = env.step(spec.to_env_action(policy.deterministic(obs)))
-                total += float(r)
-                n += 1
-                done = terminated or truncated
-            returns.append(total)
-            lengths.append(n)
-    finally:
-        env.close()
-    return float(np.mean(returns)), float(np.std(returns)), float(np.mean(lengths))
 
 
 class Learner:

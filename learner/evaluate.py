@@ -1,0 +1,66 @@
+"""Deterministic evaluation of a policy, from live weights or a checkpoint, with an optional video."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from actor.policy import NumpyPolicy
+from common import protocol as P
+from common.envs import EnvSpec, make_env
+
+
+def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None) -> tuple[float, float, float]:
+    """Mean and std of the dense return of the deterministic policy (tanh of the mean), and mean length.
+
+    With `video`, the first episode is rendered off-screen and written as MP4.
+    """
+    policy = NumpyPolicy(weights, spec.obs_dim, spec.act_dim)
+    frames: list[np.ndarray] = []
+    env = _render_env(spec.env_id) if video else make_env(spec.env_id, "dense")
+    returns, lengths = [], []
+    try:
+        for i in range(episodes):
+            obs, _ = env.reset(seed=seed + i)
+            total, n, done = 0.0, 0, False
+            while not done:
+                obs, r, terminated, truncated, _ = env.step(spec.to_env_action(policy.deterministic(obs)))
+                total += float(r)
+                n += 1
+                done = terminated or truncated
+                if video and i == 0:
+                    frames.append(env.render())
+            returns.append(total)
+            lengths.append(n)
+    finally:
+        env.close()
+    if video:
+        import imageio.v2 as imageio
+
+        video.parent.mkdir(parents=True, exist_ok=True)
+        fps = int(env.metadata.get("render_fps", 30))
+        imageio.mimwrite(video, frames, fps=fps, macro_block_size=1)
+    return float(np.mean(returns)), float(np.std(returns)), float(np.mean(lengths))
+
+
+def _render_env(env_id: str):
+    # Headless: EGL (GPU or Mesa) first, then OSMesa (software); say clearly when neither works.
+    tried = []
+    for backend in ([os.environ["MUJOCO_GL"]] if "MUJOCO_GL" in os.environ else ["egl", "osmesa"]):
+        os.environ["MUJOCO_GL"] = backend
+        try:
+            env = make_env(env_id, "dense", render_mode="rgb_array")
+            env.reset(seed=0)
+            env.render()
+            return env
+        except Exception as e:  # each backend fails in its own way (ImportError, AttributeError, GL errors)
+            tried.append(f"{backend}: {type(e).__name__}: {e}")
+    raise RuntimeError("no off-screen renderer for MuJoCo works here (" + "; ".join(tried) + "); install EGL or OSMesa (libegl1 or libosmesa6)")
+
+
+def weights_from_checkpoint(payload: dict) -> tuple[P.Weights, str]:
+    sd = payload["sac"]["actor"]
+    params = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in sd.items()}
+    return P.Weights(int(payload["counters"]["policy_version"]), params, payload["sac"]["arch"]), str(payload["config"]["env"])

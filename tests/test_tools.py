@@ -1,0 +1,96 @@
+"""`silcr plot` and `silcr eval` on small, real files."""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+import torch
+
+from common.config import Config
+from common.curves import load_run, plot, summary_markdown
+from learner.checkpoint import save_checkpoint
+from learner.sac import Sac, SacHyper
+from tests.helpers import REPO
+
+
+def _fake_run(root, env, algo, seed, steps, returns):
+    d = root / f"{env}-{algo}-{seed}"
+    d.mkdir()
+    Config(run=d.name, env=env, algo=algo, seed=seed, reward="dense").save(d / "config.toml")
+    rows = ["time,env_steps,updates,policy_version,eval_return"]
+    rows += [f"0,{s},{s},0,{r}" for s, r in zip(steps, returns)]
+    (d / "progress.csv").write_text("\n".join(rows) + "\n")
+    return d
+
+
+def test_plot_draws_one_panel_per_task_and_one_curve_per_algorithm(tmp_path):
+    dirs = []
+    for env in ("Hopper-v5", "Walker2d-v5"):
+        for algo in ("silcr", "sac"):
+            for seed in (0, 1):
+                dirs.append(_fake_run(tmp_path, env, algo, seed, [0, 1000, 2000], [1, 10 + seed, 20 + 5 * seed]))
+    runs = [load_run(d) for d in dirs]
+    fig = plot(runs, tmp_path / "out" / "fig.png", expert=30.0)
+    panels = [ax for ax in fig.axes if ax.get_visible()]
+    assert [ax.get_title() for ax in panels] == ["Hopper-v5", "Walker2d-v5"]
+    for ax in panels:
+        solid = [l for l in ax.get_lines() if l.get_linestyle() == "-"]
+        dashed = [l for l in ax.get_lines() if l.get_linestyle() == "--"]
+        assert len(solid) == 2 and len(dashed) == 1
+        mean_at_end = {l.get_label().split()[0]: l.get_ydata()[-1] for l in solid}
+        assert mean_at_end["silcr"] == pytest.approx(22.5)  # mean of seeds 20 and 25
+    assert (tmp_path / "out" / "fig.png").stat().st_size > 1000
+    assert (tmp_path / "out" / "fig.svg").exists()
+    table = summary_markdown(runs)
+    assert table.count("\n") == 2 + 4
+    assert "| Hopper-v5 | silcr | 2 | 2,000 | 22.5 ± 2.5 | 22.5 ± 2.5 |" in table
+
+
+def test_plot_rejects_a_directory_that_is_not_a_run(tmp_path):
+    r = subprocess.run([sys.executable, "-m", "common.cli", "plot", str(tmp_path), "-o", str(tmp_path / "f.png")],
+                       capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert r.returncode == 2 and "not a run directory" in r.stderr and "Traceback" not in r.stderr
+
+
+@pytest.fixture
+def checkpoint(tmp_path):
+    torch.manual_seed(0)
+    sac = Sac(4, 1, [16], SacHyper(), torch.device("cpu"))
+    cfg = Config(run="ck", env="InvertedPendulum-v5", hidden=[16])
+    path = tmp_path / "learner.pt"
+    save_checkpoint(path, {"sac": sac.state_dict(), "counters": {"policy_version": 3}, "config": cfg.to_dict()})
+    return path
+
+
+def test_eval_reports_mean_and_std(checkpoint):
+    r = subprocess.run([sys.executable, "-m", "common.cli", "eval", str(checkpoint), "--episodes", "3"],
+                       capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert "InvertedPendulum-v5, policy version 3: return" in r.stdout and "over 3 episodes" in r.stdout
+
+
+def test_eval_writes_a_video_when_a_renderer_exists(checkpoint, tmp_path):
+    from learner.evaluate import _render_env
+
+    try:
+        _render_env("InvertedPendulum-v5").close()
+    except RuntimeError as e:
+        pytest.skip(str(e))
+    video = tmp_path / "ep.mp4"
+    r = subprocess.run([sys.executable, "-m", "common.cli", "eval", str(checkpoint), "--episodes", "1", "--video", str(video)],
+                       capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode == 0, r.stderr
+    import imageio.v2 as imageio
+
+    frames = imageio.mimread(video)
+    assert len(frames) >= 2 and np.asarray(frames[0]).ndim == 3
+
+
+def test_eval_rejects_a_corrupt_checkpoint(tmp_path):
+    bad = tmp_path / "bad.pt"
+    bad.write_bytes(b"not a checkpoint")
+    r = subprocess.run([sys.executable, "-m", "common.cli", "eval", str(bad)], capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
