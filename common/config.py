@@ -141,7 +141,10 @@ def add_options(parser: argparse.ArgumentParser, role: str) -> None:
                 kw["choices"] = meta["choices"]
             shown = " ".join(map(str, default)) if isinstance(default, list) else default
             kw["help"] = f"{meta['help']} (default: {shown})" if shown not in ("", []) else meta["help"]
-            kw["metavar"] = "{" + ",".join(meta["choices"]) + "}" if "choices" in meta else f.name.upper().split("_")[-1]
+            if "choices" in meta:
+                kw["metavar"] = "{" + ",".join(meta["choices"]) + "}"
+            else:
+                kw["metavar"] = {int: "N", float: "X"}.get(elem, f.name.upper().split("_")[-1])
         parser.add_argument(option_name(f.name), **kw)
 
 
