@@ -26,6 +26,7 @@ from common import protocol as P
 from common.config import Config
 from common.lifecycle import StopFlag, setup_logging
 from common.zenoh_session import open_session, session_config
+from deploy.monitor import StatsSnapshot
 
 log = logging.getLogger("train")
 
@@ -94,23 +95,6 @@ def _tail(path: Path, lines: int = 15) -> str:
         return "(no log)"
 
 
-class _Stats:
-    def __init__(self, keys: P.Keys) -> None:
-        self.keys = keys
-        self.learner: dict[str, Any] = {}
-        self.buffer: dict[str, Any] = {}
-
-    def on_sample(self, sample: Any) -> None:
-        try:
-            data = json.loads(sample.payload.to_bytes())
-        except ValueError:
-            return
-        if str(sample.key_expr) == self.keys.stats_learner:
-            self.learner = data
-        else:
-            self.buffer = data
-
-
 class LocalRun:
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
@@ -170,7 +154,7 @@ def run_train(cfg: Config) -> int:
     order = [*actor_names, "learner", "buffer", "router"]
     print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), {cfg.total_steps} env steps)")
     keys = P.Keys(cfg.run)
-    stats = _Stats(keys)
+    stats = StatsSnapshot(keys)
     code = 0
     interrupted = False
     previous = signal.getsignal(signal.SIGTERM)
@@ -213,7 +197,7 @@ def run_train(cfg: Config) -> int:
     return code
 
 
-def _watch(run: LocalRun, cfg: Config, stats: _Stats) -> int:
+def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
     """Follow the run until the learner finishes (0) or a component dies (1)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
 
@@ -231,8 +215,9 @@ def _watch(run: LocalRun, cfg: Config, stats: _Stats) -> int:
     clean_exit_seen: dict[str, float] = {}
     with progress:
         while True:
-            lr = stats.learner
-            env_steps = max(int(lr.get("env_steps", 0)), int(stats.buffer.get("transitions_received", 0)))
+            snap = stats.as_dict()
+            lr = snap["learner"] or {}
+            env_steps = max(int(lr.get("env_steps", 0)), int((snap["buffer"] or {}).get("transitions_received", 0)))
             ev = lr.get("last_eval_return")
             ev_s = f"{ev:.1f}" if isinstance(ev, (int, float)) else "-"
             progress.update(task, completed=min(env_steps, cfg.total_steps), updates=lr.get("updates", 0),
