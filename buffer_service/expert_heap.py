@@ -81,6 +81,24 @@ class ExpertHeap:
     def episodes(self) -> list[Episode]:
         return [e[2] for e in self._heap]
 
+    def entries(self) -> list[tuple[float, int, Episode]]:
+        """(return, admission order, episode) of every stored episode, for checkpoints."""
+        return list(self._heap)
+
+    def restore(self, entries: list[tuple[float, int, Episode]], admitted: int, rejected: int, evicted: int) -> None:
+        """Refill an empty heap from `entries()` of a checkpoint, keeping the eviction order."""
+        if self._heap:
+            raise RuntimeError("restore needs an empty expert buffer")
+        total = sum(e[2].length for e in entries)
+        if total > self.capacity:
+            raise ValueError(f"checkpointed D_E holds {total} transitions, more than M = {self.capacity}")
+        self._heap = list(entries)
+        heapq.heapify(self._heap)
+        self._order = itertools.count(max((e[1] for e in entries), default=-1) + 1)
+        self._transitions = total
+        self._cum = None
+        self.admitted, self.rejected, self.evicted = admitted, rejected, evicted
+
     def returns(self) -> list[float]:
         return [e[0] for e in self._heap]
 

@@ -16,11 +16,14 @@ import threading
 import time
 from typing import Any
 
+from pathlib import Path
+
 import numpy as np
 import zenoh
 
 from common import protocol as P
 from common.config import Config
+from common.demos import load_demos
 from common.envs import EnvSpec
 from common.lifecycle import StopFlag
 from common.zenoh_session import open_session, session_config
@@ -28,6 +31,7 @@ from common.zenoh_session import open_session, session_config
 from .batches import compose_batches
 from .expert_heap import ExpertHeap
 from .online_fifo import OnlineFifo
+from . import snapshot
 from .rate_limiter import SamplesPerInsertLimiter
 
 log = logging.getLogger("buffer")
@@ -39,9 +43,19 @@ class ReplayState:
     def __init__(self, cfg: Config, spec: EnvSpec) -> None:
         self.cfg = cfg
         self.spec = spec
-        self.constant_rewards = cfg.algo == "silcr"
+        self.constant_rewards = cfg.constant_rewards
         self.fifo = OnlineFifo(cfg.online_capacity)
-        self.heap = ExpertHeap(cfg.expert_capacity) if cfg.algo == "silcr" else None
+        self.heap: ExpertHeap | None = None
+        if cfg.algo == "silcr":
+            self.heap = ExpertHeap(cfg.expert_capacity)
+        elif cfg.algo == "sqil":
+            # SQIL: D_E is the demonstrations, loaded once and never changed (reference.md).
+            demos = load_demos(Path(cfg.demos), spec)
+            self.heap = ExpertHeap(sum(d.length for d in demos))
+            for d in demos:
+                self.heap.offer(d)
+            log.info("D_E holds %d demonstration episodes (%d transitions, mean return %.1f) from %s",
+                     self.heap.num_episodes, len(self.heap), np.mean([d.episode_return for d in demos]), cfg.demos)
         self.limiter = SamplesPerInsertLimiter(
             cfg.samples_per_insert, cfg.learning_starts, cfg.spi_tolerance, throttle_inserts=not cfg.no_throttle
         )
@@ -76,7 +90,7 @@ class ReplayState:
             del self.last_seq[next(iter(self.last_seq))]
         self.last_seq[sender] = ep.seq
         self.fifo.add(ep)
-        if self.heap is not None:
+        if self.heap is not None and self.cfg.algo == "silcr":
             self.heap.offer(ep)
         self.limiter.record_insert(ep.length)
         self.episodes_received += 1
@@ -221,9 +235,28 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
     state = ReplayState(cfg, spec)
     keys = P.Keys(cfg.run)
     inbox = Inbox()
+    ckpt_path = cfg.run_dir / "checkpoints" / "buffer.ckpt"
+    restored: dict[str, Any] = {}
+    if cfg.resume and ckpt_path.exists():
+        t0 = time.monotonic()
+        try:
+            snap = snapshot.restore(ckpt_path, state)
+        except snapshot.SnapshotError as e:
+            # Refuse to start rather than silently begin empty: the file is kept for inspection.
+            log.error("cannot resume: %s", e)
+            return 1
+        restored = {"restored_transitions": snap.transitions,
+                    "restored_checkpoint_age_s": time.time() - snap.header["written_at"]}
+        log.info("restored D_O (%d transitions) and D_E (%d) from %s in %.1fs; it was written %.0fs ago at %d "
+                 "transitions received; anything received after that was lost", len(state.fifo),
+                 len(state.heap) if state.heap is not None else 0, ckpt_path, time.monotonic() - t0,
+                 restored["restored_checkpoint_age_s"], snap.transitions)
+    elif cfg.resume:
+        log.info("--resume: no buffer checkpoint at %s yet; starting empty", ckpt_path)
+    writer = snapshot.BackgroundWriter(ckpt_path)
     log.info(
         "buffer for run %s: %s, algo %s, D_O %d, D_E %s, learning starts after %d transitions",
-        cfg.run, cfg.env, cfg.algo, cfg.online_capacity, cfg.expert_capacity if state.heap is not None else "-", cfg.learning_starts,
+        cfg.run, cfg.env, cfg.algo, cfg.online_capacity, state.heap.capacity if state.heap is not None else "-", cfg.learning_starts,
     )
     conf = session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
     with open_session(conf) as session:
@@ -254,6 +287,8 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
         )
         paused = False
         next_stats = time.monotonic()
+        interval = cfg.buffer_checkpoint_interval
+        next_checkpoint = time.monotonic() + interval if interval > 0 else float("inf")
         while not stop.is_set():
             item = inbox.get(timeout=max(0.0, min(0.5, next_stats - time.monotonic())))
             if item is not None:
@@ -270,6 +305,9 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
             if now_paused != paused or now >= next_stats:
                 throttle_pub.put(P.encode_control("throttle", paused=now_paused))
                 paused = now_paused
+            if now >= next_checkpoint:
+                writer.submit(snapshot.take(state))
+                next_checkpoint = now + interval
             if now >= next_stats:
                 stats = state.stats()
                 ep_depth, q_depth = inbox.depth()
@@ -280,13 +318,29 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
                     "inbox_queries": q_depth,
                     "inbox_blocked_puts": inbox.blocked_puts,
                     "episodes_dropped": inbox.dropped_at_close,
-                }
+                    "checkpoints_written": writer.written,
+                    "checkpoints_skipped": writer.skipped,
+                    "checkpoints_failed": writer.failed,
+                    "checkpoint_transitions": writer.last_transitions,
+                    "checkpoint_age_s": time.time() - writer.last_written_at if writer.last_written_at else None,
+                } | restored
                 stats_pub.put(P.encode_stats(stats))
                 next_stats = now + cfg.stats_interval
         for q in inbox.close():
             with q:
                 q.reply_err(b"buffer service is shutting down")
         token.undeclare()
+        # A last checkpoint on the way out, so a clean stop (Ctrl-C, end of run) loses nothing.
+        writer.join()
+        t0 = time.monotonic()
+        try:
+            snapshot.write(ckpt_path, snapshot.take(state))
+            log.info("checkpoint of %d transitions written to %s in %.1fs", state.transitions_received, ckpt_path,
+                     time.monotonic() - t0)
+        except OSError as e:
+            log.error("final checkpoint failed: %s", e)
+        if writer.failed:
+            log.error("%d periodic checkpoints failed; last error: %s", writer.failed, writer.last_error)
         log.info(
             "buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d batches served",
             stop.reason, state.episodes_received, state.transitions_received,

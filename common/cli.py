@@ -25,6 +25,8 @@ ROLES_HELP = {
     "bench": "run the benchmark suite (tables on screen, JSON files)",
     "plot": "learning curves (mean +- std over seeds) and a summary table from run directories",
     "eval": "evaluate a checkpoint's deterministic policy, optionally recording a video",
+    "demos": "record a checkpoint's episodes as a demonstrations file for --algo sqil",
+    "sweep": "run every (algorithm, task, seed) cell of an experiment file, resuming unfinished cells",
 }
 
 
@@ -54,6 +56,23 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--seed", type=int, default=12345, help="seed of the first episode (default: 12345)")
             p.add_argument("--video", default=None, help="write the first episode as an MP4, rendered off-screen")
             continue
+        if role == "demos":
+            p.add_argument("checkpoint", help="a learner checkpoint, normally of dense-reward SAC (runs/<run>/checkpoints/learner.pt)")
+            p.add_argument("--episodes", type=int, default=10, help="episodes to record (default: 10)")
+            p.add_argument("-o", "--out", default="demos.npz", help="demonstrations file to write (default: demos.npz)")
+            p.add_argument("--seed", type=int, default=2024, help="seed of the first episode (default: 2024)")
+            p.add_argument("--stochastic", action="store_true", help="sample actions instead of the deterministic tanh(mean)")
+            continue
+        if role == "sweep":
+            p.add_argument("experiment", help="experiment TOML file (see experiments/)")
+            p.add_argument("--seeds", default="0-2", help="seeds as a range and/or list, e.g. 0-4 or 0,3,7 (default: 0-2)")
+            p.add_argument("--runs-dir", default="", help="where the cells' run directories go (default: the file's runs_dir, else runs/<experiment>)")
+            p.add_argument("--parallel", type=int, default=1, help="cells run at once (default: 1)")
+            p.add_argument("--shard", default="1/1", help="K/N: run only the K-th of N shares of the cells, to spread a sweep over N machines (default: 1/1)")
+            p.add_argument("--only", default="", help="run only cells whose name contains this text")
+            p.add_argument("--dry-run", action="store_true", help="list the cells and their state, run nothing")
+            p.add_argument("--port-base", type=int, default=17500, help="first router port; cell i uses port-base + i (default: 17500)")
+            continue
         if role == "bench":
             p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "all"])
             p.add_argument("--out", default="bench-results", help="directory for the JSON results (default: bench-results)")
@@ -81,9 +100,18 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
         from common.envs import EnvSpec
 
         try:
-            EnvSpec.of(cfg.env)
+            spec = EnvSpec.of(cfg.env)
         except ValueError as e:
             raise ConfigError("--env", str(e)) from None
+        if cfg.demos and role in ("train", "buffer"):
+            from pathlib import Path
+
+            from common.demos import DemosError, load_demos
+
+            try:
+                load_demos(Path(cfg.demos), spec)
+            except DemosError as e:
+                raise ConfigError("--demos", str(e)) from None
     try:
         session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
     except ValueError as e:
@@ -104,6 +132,12 @@ def main(argv: list[str] | None = None) -> int:
         return _plot(args, subs[role])
     if role == "eval":
         return _eval(args, subs[role])
+    if role == "demos":
+        return _demos(args, subs[role])
+    if role == "sweep":
+        from deploy.sweep import run_sweep_cli
+
+        return run_sweep_cli(args, subs[role])
     if role == "bench":
         from pathlib import Path
 
@@ -199,6 +233,42 @@ def _eval(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         return 1
     print(f"{env_id}, policy version {weights.version}: return {mean:.1f} ± {std:.1f} over {args.episodes} "
           f"episodes (mean length {length:.0f})" + (f"; video: {args.video}" if args.video else ""))
+    return 0
+
+
+def _demos(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from pathlib import Path
+
+    import numpy as np
+
+    from learner.checkpoint import CheckpointError, load_checkpoint
+
+    if args.episodes < 1:
+        parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    out = Path(args.out)
+    if out.suffix != ".npz":
+        parser.error(f"-o {args.out}: the demonstrations file must end in .npz")
+    try:
+        payload = load_checkpoint(Path(args.checkpoint))
+    except CheckpointError as e:
+        parser.error(str(e))
+    from common.demos import save_demos
+    from common.envs import EnvSpec
+    from learner.evaluate import record_demos, weights_from_checkpoint
+
+    weights, env_id = weights_from_checkpoint(payload)
+    spec = EnvSpec.of(env_id)
+    print(f"recording {args.episodes} episodes of {env_id}, policy version {weights.version} "
+          f"({'stochastic' if args.stochastic else 'deterministic'})", flush=True)
+
+    def show(ep) -> None:
+        print(f"  episode: return {ep.episode_return:9.1f}, length {ep.length}", flush=True)
+
+    eps = record_demos(weights, spec, args.episodes, args.seed, not args.stochastic, show)
+    save_demos(out, env_id, eps)
+    returns = [e.episode_return for e in eps]
+    print(f"wrote {out}: {len(eps)} episodes, {sum(e.length for e in eps)} transitions, "
+          f"return {np.mean(returns):.1f} ± {np.std(returns):.1f}")
     return 0
 
 

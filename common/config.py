@@ -20,7 +20,7 @@ import tomli_w
 from common.envs import REWARD_MODES
 from common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
 
-ALGOS = ("silcr", "sac")
+ALGOS = ("silcr", "sac", "sqil")
 DEVICES = ("auto", "cpu", "cuda")
 ZENOH_MODES = ("peer", "client")
 
@@ -47,9 +47,10 @@ def _opt(default: Any, roles: frozenset[str] | set[str], help: str, **extra: Any
 class Config:
     # --- run and environment ------------------------------------------------
     run: str = _opt("", ALL | {"monitor"}, "run name; the Zenoh keys live under silcr/<run>/ (default: <env>-<algo>-<time> for train)")
-    runs_dir: str = _opt("runs", {"train", "learner"}, "directory holding one sub-directory per run")
+    runs_dir: str = _opt("runs", SERVICE, "directory holding one sub-directory per run")
     env: str = _opt("Hopper-v5", ALL, "gymnasium environment id (continuous control, flat Box spaces)")
-    algo: str = _opt("silcr", ALL, "silcr: constant 0/1 rewards from two buffers; sac: plain SAC on the env's reward", choices=ALGOS)
+    algo: str = _opt("silcr", ALL, "silcr: constant 0/1 rewards from D_O and the top-M D_E; sac: plain SAC on the env's reward; "
+                     "sqil: constant 0/1 rewards with D_E fixed to --demos", choices=ALGOS)
     reward: str = _opt("episodic", ALL, "reward the actors' env gives (silcr always uses episodic)", choices=REWARD_MODES)
     seed: int = _opt(0, ALL, "base seed; actor i uses seed + i")
     # --- Zenoh -----------------------------------------------------------------
@@ -66,7 +67,9 @@ class Config:
     samples_per_insert: float = _opt(1.0, SERVICE, "gradient updates per environment step (official: 1)")
     spi_tolerance: float = _opt(2_000.0, SERVICE, "how many updates the learner or actors may run ahead of the ratio")
     no_throttle: bool = _opt(False, {"train", "buffer"}, "let actors run free instead of pausing them when they are ahead")
+    demos: str = _opt("", {"train", "buffer"}, "demonstrations file (`silcr demos`) that fills D_E for --algo sqil")
     max_episode_bytes: int = _opt(DEFAULT_MAX_EPISODE_BYTES, {"train", "buffer"}, "largest episode message accepted")
+    buffer_checkpoint_interval: float = _opt(300.0, {"train", "buffer"}, "seconds between buffer checkpoints (D_O, D_E, counters) in <run dir>/checkpoints/buffer.ckpt; 0: only at shutdown")
     # --- learner ---------------------------------------------------------------
     hidden: list[int] = _opt([800, 400], {"train", "learner", "actor"}, "hidden layer sizes of actor and critics (Table I: 800 400)", nargs="+")
     lr: float = _opt(3e-4, {"train", "learner"}, "Adam learning rate for actor, critics and alpha")
@@ -80,14 +83,14 @@ class Config:
     eval_interval: int = _opt(5_000, {"train", "learner"}, "evaluate the deterministic policy every N environment steps")
     eval_episodes: int = _opt(5, {"train", "learner"}, "episodes per evaluation")
     checkpoint_interval: int = _opt(10_000, {"train", "learner"}, "checkpoint every N updates (and at the end)")
-    resume: bool = _opt(False, {"train", "learner"}, "continue from <run dir>/checkpoints/learner.pt (networks, optimizers, alpha, counters)")
+    resume: bool = _opt(False, SERVICE, "continue from the checkpoints in <run dir>/checkpoints/ when they exist (learner: networks, optimizers, alpha, counters; buffer: D_O, D_E, counters)")
     device: str = _opt("auto", {"train", "learner"}, "torch device for the learner (auto: CUDA when present)", choices=DEVICES)
     torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: torch's default)")
     batches_per_request: int = _opt(4, {"train", "learner"}, "batches fetched per sample query")
     requests_in_flight: int = _opt(2, {"train", "learner"}, "sample queries kept in flight so the learner never waits on the network")
     # --- actors ----------------------------------------------------------------
     actors: int = _opt(1, {"train"}, "number of actor processes")
-    max_restarts: int = _opt(5, {"train"}, "times `silcr train` restarts an actor that dies before giving up")
+    max_restarts: int = _opt(5, {"train"}, "times `silcr train` restarts a component that dies (actors fresh; buffer and learner from their checkpoints) before giving up")
     actor_id: int = _opt(0, {"actor"}, "this actor's id (also its seed offset)")
     envs_per_actor: int = _opt(1, {"train", "actor"}, "environments stepped by each actor with one batched forward pass")
     weights_poll_steps: int = _opt(50, {"train", "actor"}, "check for new weights every N steps")
@@ -102,7 +105,12 @@ class Config:
 
     @property
     def actor_reward(self) -> str:
-        return "episodic" if self.algo == "silcr" else self.reward
+        return self.reward if self.algo == "sac" else "episodic"  # SILCR and SQIL ignore env rewards
+
+    @property
+    def constant_rewards(self) -> bool:
+        """SILCR and SQIL: reward 0 for D_O rows and 1 for D_E rows (paper eq. 3)."""
+        return self.algo in ("silcr", "sqil")
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -236,7 +244,16 @@ def validate(cfg: Config, role: str) -> None:
         raise ConfigError("--grad-clip", f"must be >= 0, got {cfg.grad_clip}")
     if not cfg.hidden or any(h < 1 for h in cfg.hidden):
         raise ConfigError("--hidden", f"needs one or more positive layer sizes, got {cfg.hidden}")
+    if cfg.buffer_checkpoint_interval < 0:
+        raise ConfigError("--buffer-checkpoint-interval", f"must be >= 0, got {cfg.buffer_checkpoint_interval}")
     if cfg.stats_interval <= 0:
         raise ConfigError("--stats-interval", f"must be > 0, got {cfg.stats_interval}")
+    if role in ("train", "buffer"):
+        if cfg.algo == "sqil" and not cfg.demos:
+            raise ConfigError("--demos", "--algo sqil needs a demonstrations file (make one with `silcr demos CHECKPOINT -o demos.npz`)")
+        if cfg.demos and cfg.algo != "sqil":
+            raise ConfigError("--demos", f"only --algo sqil uses demonstrations (got --algo {cfg.algo})")
+        if cfg.demos and not Path(cfg.demos).is_file():
+            raise ConfigError("--demos", f"no such file: {cfg.demos}")
     if cfg.learning_starts >= cfg.online_capacity:
         raise ConfigError("--learning-starts", f"must be below --online-capacity ({cfg.online_capacity})")

@@ -231,8 +231,9 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
             for name, p in list(run.procs.items()):
                 if p.exitcode is None:
                     continue
-                if name.startswith("actor-") and p.exitcode != 0 and run.restarts.get(name, 0) < cfg.max_restarts:
-                    # Actors hold no state that matters: start a fresh one (new incarnation).
+                if name != "router" and p.exitcode != 0 and run.restarts.get(name, 0) < cfg.max_restarts:
+                    # Actors hold no state that matters: start a fresh one (new incarnation). The
+                    # buffer and the learner come back from their latest checkpoints.
                     run.restarts[name] = run.restarts.get(name, 0) + 1
                     message = (f"silcr train: {name} exited with code {p.exitcode}; restarting it "
                                f"({run.restarts[name]}/{cfg.max_restarts})")
@@ -241,6 +242,8 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     else:
                         print(message, flush=True)
                     role, acfg = run.specs[name]
+                    if role in ("buffer", "learner"):
+                        acfg = Config(**acfg.to_dict() | {"resume": True})
                     run.start(role, acfg, name)
                     continue
                 if p.exitcode == 0 and name != "learner":

@@ -12,6 +12,27 @@ from common import protocol as P
 from common.envs import EnvSpec, make_env
 
 
+def rollout(env, policy: NumpyPolicy, spec: EnvSpec, seed: int, deterministic: bool = True,
+            frames: list[np.ndarray] | None = None) -> P.Episode:
+    """One episode of `policy` on a dense-reward `env`, recorded whole (rendered into `frames` if given)."""
+    obs, _ = env.reset(seed=seed)
+    rng = np.random.default_rng(seed)
+    observations, actions, rewards = [np.asarray(obs, np.float32)], [], []
+    terminated = truncated = False
+    while not (terminated or truncated):
+        a = policy.deterministic(obs) if deterministic else policy.sample(obs, rng)
+        obs, r, terminated, truncated, _ = env.step(spec.to_env_action(a))
+        observations.append(np.asarray(obs, np.float32))
+        actions.append(np.asarray(a, np.float32))
+        rewards.append(float(r))
+        if frames is not None:
+            frames.append(env.render())
+    rew = np.asarray(rewards, np.float32)
+    return P.Episode(actor_id=-1, seq=seed, policy_version=policy.version, episode_return=float(np.sum(rewards)),
+                     terminated=bool(terminated), truncated=bool(truncated) and not terminated,
+                     obs=np.stack(observations), actions=np.stack(actions), rewards=rew)
+
+
 def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None) -> tuple[float, float, float]:
     """Mean and std of the dense return of the deterministic policy (tanh of the mean), and mean length.
 
@@ -20,20 +41,8 @@ def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video:
     policy = NumpyPolicy(weights, spec.obs_dim, spec.act_dim)
     frames: list[np.ndarray] = []
     env = _render_env(spec.env_id) if video else make_env(spec.env_id, "dense")
-    returns, lengths = [], []
     try:
-        for i in range(episodes):
-            obs, _ = env.reset(seed=seed + i)
-            total, n, done = 0.0, 0, False
-            while not done:
-                obs, r, terminated, truncated, _ = env.step(spec.to_env_action(policy.deterministic(obs)))
-                total += float(r)
-                n += 1
-                done = terminated or truncated
-                if video and i == 0:
-                    frames.append(env.render())
-            returns.append(total)
-            lengths.append(n)
+        eps = [rollout(env, policy, spec, seed + i, True, frames if video and i == 0 else None) for i in range(episodes)]
     finally:
         env.close()
     if video:
@@ -42,7 +51,24 @@ def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video:
         video.parent.mkdir(parents=True, exist_ok=True)
         fps = int(env.metadata.get("render_fps", 30))
         imageio.mimwrite(video, frames, fps=fps, macro_block_size=1)
-    return float(np.mean(returns)), float(np.std(returns)), float(np.mean(lengths))
+    returns = [e.episode_return for e in eps]
+    return float(np.mean(returns)), float(np.std(returns)), float(np.mean([e.length for e in eps]))
+
+
+def record_demos(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, deterministic: bool = True,
+                 progress=None) -> list[P.Episode]:
+    """Roll out `episodes` episodes of the policy for a demonstrations file (dense rewards kept)."""
+    policy = NumpyPolicy(weights, spec.obs_dim, spec.act_dim)
+    env = make_env(spec.env_id, "dense")
+    out = []
+    try:
+        for i in range(episodes):
+            out.append(rollout(env, policy, spec, seed + i, deterministic))
+            if progress is not None:
+                progress(out[-1])
+    finally:
+        env.close()
+    return out
 
 
 def _render_env(env_id: str):

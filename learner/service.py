@@ -58,8 +58,13 @@ class Learner:
         self.evals = 0
         self.last_eval_return: float | None = None
         self.checkpoint_path = cfg.run_dir / "checkpoints" / "learner.pt"
-        if cfg.resume:
+        # --resume continues from a checkpoint when there is one, so the same command
+        # serves a first start and every restart (launcher, sweep, docker restart policy).
+        self.resumed = cfg.resume and self.checkpoint_path.exists()
+        if self.resumed:
             self._restore(load_checkpoint(self.checkpoint_path))
+        elif cfg.resume:
+            log.info("--resume: no checkpoint at %s yet; starting fresh", self.checkpoint_path)
         self.last_losses: dict[str, float] = {}
 
     # -- checkpoints -------------------------------------------------------------
@@ -110,7 +115,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
     lrn = Learner(cfg, spec)
     keys = P.Keys(cfg.run)
     cfg.run_dir.mkdir(parents=True, exist_ok=True)
-    progress = ProgressLog(cfg.run_dir, resume=cfg.resume)
+    progress = ProgressLog(cfg.run_dir, resume=lrn.resumed)
     log.info(
         "learner for run %s on %s: %s, networks %s, batch %d, %d env steps",
         cfg.run, lrn.device, cfg.algo, cfg.hidden, cfg.batch_size, cfg.total_steps,
@@ -181,7 +186,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
             )
 
         publish_weights()
-        if not cfg.resume:
+        if not lrn.resumed:
             do_eval()  # the untrained policy: the baseline every curve starts from
             lrn.next_eval = cfg.eval_interval
 
@@ -196,6 +201,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         next_stats = time.monotonic()
         next_checkpoint = (lrn.updates // cfg.checkpoint_interval + 1) * cfg.checkpoint_interval
         rate_limited_at_end = False
+        last_buffer_steps, buffer_restarts, transitions_lost, last_error_log = 0, 0, 0, 0.0
         while not stop.is_set():
             while len(in_flight) < cfg.requests_in_flight:
                 in_flight.append(querier.get(payload=request))
@@ -206,7 +212,9 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
             if reply is None or reply.ok is None:
                 sample_errors += 1
                 why = "no reply" if reply is None else reply.err.payload.to_string()
-                log.warning("sample query failed (%s); retrying", why)
+                if time.monotonic() - last_error_log > 10:  # the buffer may be down for a while: do not flood the log
+                    log.warning("sample query failed (%s); retrying (%d failures so far)", why, sample_errors)
+                    last_error_log = time.monotonic()
                 stop.wait(0.5)
             else:
                 try:
@@ -215,7 +223,15 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                     sample_errors += 1
                     log.warning("malformed batch reply: %s", e)
             if batch is not None:
-                lrn.env_steps = max(lrn.env_steps, int(batch.meta.get("env_steps", 0)))
+                buffer_steps = int(batch.meta.get("env_steps", 0))
+                if buffer_steps < last_buffer_steps:
+                    # The buffer's counter never goes back unless it restarted from an older checkpoint.
+                    buffer_restarts += 1
+                    transitions_lost += last_buffer_steps - buffer_steps
+                    log.warning("the buffer service restarted: %d transitions it had received since its last "
+                                "checkpoint are lost (%d in all)", last_buffer_steps - buffer_steps, transitions_lost)
+                last_buffer_steps = buffer_steps
+                lrn.env_steps = max(lrn.env_steps, buffer_steps)
                 if batch.status == "ok":
                     # Policy lag: how many weight versions behind the learner the sampled data is.
                     versions = batch.arrays["policy_version"]
@@ -255,6 +271,8 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                     "not_ready_replies": not_ready,
                     "policy_lag_mean": float(np.mean(policy_lag)) if policy_lag else None,
                     "sample_errors": sample_errors,
+                    "buffer_restarts": buffer_restarts,
+                    "transitions_lost": transitions_lost,
                     "device": str(lrn.device),
                 } | {k: P.finite_or_none(v) for k, v in lrn.last_losses.items()}
                 stats_pub.put(P.encode_stats(stats))

@@ -172,3 +172,25 @@ def test_twin_critic_clips_each_critic_separately():
     assert norm(0) == pytest.approx(1.0, rel=1e-4)
     for before, p in zip(small_before, twin.parameters()):
         torch.testing.assert_close(p.grad[1], before)  # the small one is left alone
+
+
+def test_a_restored_state_continues_exactly_as_the_original(tmp_path):
+    """Checkpoint round trip: networks, target critics, optimizer moments and alpha all come back."""
+    from learner.checkpoint import load_checkpoint, save_checkpoint
+
+    a = _sac()
+    for _ in range(3):
+        a.update(*_batch(8, rewards=[1.0] * 8))
+    save_checkpoint(tmp_path / "c.pt", {"sac": a.state_dict(), "counters": {}})
+    torch.manual_seed(123)
+    b = Sac(3, 2, [8], SacHyper(), torch.device("cpu"))
+    b.load_state_dict(load_checkpoint(tmp_path / "c.pt")["sac"])
+    assert b.alpha == a.alpha
+    torch.manual_seed(7)
+    la = a.update(*_batch(8, rewards=[1.0] * 8))
+    torch.manual_seed(7)
+    lb = b.update(*_batch(8, rewards=[1.0] * 8))
+    assert la == lb
+    for pa, pb in zip([*a.actor.parameters(), *a.critic.parameters(), *a.critic_target.parameters()],
+                      [*b.actor.parameters(), *b.critic.parameters(), *b.critic_target.parameters()]):
+        torch.testing.assert_close(pa, pb, rtol=0, atol=0)

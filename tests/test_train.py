@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -99,14 +100,14 @@ def test_ctrl_c_stops_everything_and_leaves_a_usable_checkpoint(tmp_path):
         procs.stop_all()
     ckpt_dir = tmp_path / "runs" / run / "checkpoints"
     assert load_checkpoint(ckpt_dir / "learner.pt")["counters"]["updates"] > 50
-    assert [p.name for p in ckpt_dir.iterdir()] == ["learner.pt"]  # no temporary file left behind
+    assert sorted(p.name for p in ckpt_dir.iterdir()) == ["buffer.ckpt", "learner.pt"]  # no temporary file left behind
 
 
-def test_a_dying_component_is_reported_and_everything_stops(tmp_path):
+def test_a_component_that_keeps_dying_is_reported_and_everything_stops(tmp_path):
     procs = Processes(tmp_path)
     port = free_port()
     run = "e2e-death"
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "1", "--total-steps", "100000000")
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "1", "--total-steps", "100000000", "--max-restarts", "0")
     try:
         pids_file = tmp_path / "runs" / run / "pids.json"
         pids = wait_for(lambda: pids_file.exists() and "actor-0" in (d := json.loads(pids_file.read_text())) and d,
@@ -119,6 +120,78 @@ def test_a_dying_component_is_reported_and_everything_stops(tmp_path):
         wait_for(lambda: tagged_pids(procs.tag) == [], 30, "every process to exit")
     finally:
         procs.stop_all()
+
+
+def _kill_and_wait_for_restart(pids_file, name: str) -> None:
+    old = json.loads(pids_file.read_text())[name]
+    os.kill(old, signal.SIGKILL)
+    wait_for(lambda: json.loads(pids_file.read_text())[name] != old, 30, f"{name} to be restarted")
+
+
+def test_a_killed_buffer_comes_back_from_its_checkpoint_and_the_learner_resumes(tmp_path):
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "e2e-buffer-kill"
+    keys = P.Keys(run)
+    run_dir = tmp_path / "runs" / run
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "5000",
+                   "--buffer-checkpoint-interval", "1")
+    try:
+        session = client_when_up(port)
+        stats = LatestJson(session, keys.stats_all)
+        wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("checkpoints_written", 0) >= 2
+                 and (stats.get(keys.stats_learner) or {}).get("updates", 0) > 50, 120, "training and buffer checkpoints")
+        before = stats.get(keys.stats_buffer)
+        _kill_and_wait_for_restart(run_dir / "pids.json", "buffer")
+        restored = wait_for(lambda: (b := stats.get(keys.stats_buffer)) and "restored_transitions" in b and b, 60,
+                            "the restarted buffer's stats")
+        # It came back with what it had, not empty: at least the transitions of a checkpoint taken before the kill.
+        assert restored["restored_transitions"] >= before["checkpoint_transitions"] > 0
+        assert restored["online_transitions"] >= before["checkpoint_transitions"]
+        assert train.wait(300) == 0, procs.log("train")
+        learner = stats.get(keys.stats_learner)
+        session.close()
+    finally:
+        procs.stop_all()
+    assert "buffer exited with code -9; restarting it (1/5)" in procs.log("train")
+    buffer_log = (run_dir / "logs" / "buffer.log").read_text()
+    assert "restored D_O" in buffer_log
+    assert learner["finished"] is True
+    assert tagged_pids(procs.tag) == []
+
+
+def test_a_killed_learner_resumes_from_its_checkpoint_with_its_counters(tmp_path):
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "e2e-learner-kill"
+    keys = P.Keys(run)
+    run_dir = tmp_path / "runs" / run
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "5000",
+                   "--checkpoint-interval", "100")
+    try:
+        session = client_when_up(port)
+        stats = LatestJson(session, keys.stats_all)
+        ckpt_path = run_dir / "checkpoints" / "learner.pt"
+        wait_for(lambda: ckpt_path.exists() and (stats.get(keys.stats_learner) or {}).get("updates", 0) > 250, 180,
+                 "two learner checkpoints")
+        saved = load_checkpoint(ckpt_path)
+        _kill_and_wait_for_restart(run_dir / "pids.json", "learner")
+        assert train.wait(300) == 0, procs.log("train")
+        session.close()
+    finally:
+        procs.stop_all()
+    log = (run_dir / "logs" / "learner.log").read_text()
+    u = saved["counters"]["updates"]
+    resumed = re.search(r"resumed from .*: (\d+) updates, policy version (\d+)", log)
+    assert resumed, log[-2000:]
+    assert int(resumed.group(1)) >= u and int(resumed.group(2)) >= saved["counters"]["policy_version"]
+    rows = list(csv.DictReader(open(run_dir / "progress.csv")))
+    for col in ("updates", "policy_version", "env_steps"):
+        values = [int(r[col]) for r in rows]
+        assert values == sorted(values), f"{col} went backwards after the resume: {values}"
+    final = load_checkpoint(run_dir / "checkpoints" / "learner.pt")
+    assert final["counters"]["updates"] > u
+    assert tagged_pids(procs.tag) == []
 
 
 def test_a_killed_actor_is_restarted_and_the_run_finishes(tmp_path):

@@ -1,0 +1,263 @@
+"""`silcr sweep`: every (variant, task, seed) cell of an experiment file, resumable.
+
+An experiment is a TOML file (see `experiments/`):
+
+    name = "hopper-30k"                 # default run directory: runs/<name>
+    tasks = ["Hopper-v5"]
+    seeds = "0-2"                       # default for --seeds
+    [common]                            # `silcr train` options for every cell
+    total_steps = 30000
+    [variants.silcr-episodic]           # one table per algorithm setting
+    algo = "silcr"
+    [variants.sqil]
+    algo = "sqil"
+    demos = "demos/{task}.npz"          # {task} is replaced by the cell's task
+
+Each cell is one `silcr train` run named `<variant>_<task>_s<seed>` in the sweep's
+runs directory. A cell is *done* once its run exited cleanly (marker file
+`sweep-done.json`); a cell with a learner checkpoint but no marker was stopped
+midway and continues with `--resume`; any other cell starts fresh. So re-running
+the same command after a crash or Ctrl-C picks up where it stopped.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from common.config import FIELDS, ConfigError, option_name
+
+DONE_MARKER = "sweep-done.json"
+# Set per cell by the sweep itself, so an experiment file may not set them.
+_SWEEP_OWNED = {"run", "runs_dir", "seed", "resume", "zenoh_listen", "config"}
+
+
+class ExperimentError(ValueError):
+    pass
+
+
+@dataclass(frozen=True)
+class Cell:
+    variant: str
+    task: str
+    seed: int
+    options: dict[str, Any]
+
+    @property
+    def name(self) -> str:
+        return f"{self.variant}_{self.task.replace('/', '-')}_s{self.seed}"
+
+
+def parse_seeds(text: str) -> list[int]:
+    """`0-4`, `0,3,7` or a mix (`0-2,5`) as a sorted list of distinct seeds."""
+    seeds: set[int] = set()
+    try:
+        for part in str(text).split(","):
+            part = part.strip()
+            if "-" in part[1:]:
+                lo, hi = part.split("-", 1) if not part.startswith("-") else (part, "")
+                a, b = int(lo), int(hi)
+                if b < a:
+                    raise ValueError
+                seeds.update(range(a, b + 1))
+            else:
+                seeds.add(int(part))
+    except ValueError:
+        raise ExperimentError(f"seeds {text!r}: use a range like 0-4 and/or a list like 0,3,7") from None
+    return sorted(seeds)
+
+
+def load_experiment(path: Path) -> dict[str, Any]:
+    try:
+        data = tomllib.loads(path.read_text())
+    except OSError as e:
+        raise ExperimentError(f"{path}: {e.strerror or e}") from None
+    except tomllib.TOMLDecodeError as e:
+        raise ExperimentError(f"{path}: not valid TOML ({e})") from None
+    unknown = set(data) - {"name", "description", "tasks", "seeds", "runs_dir", "common", "variants"}
+    if unknown:
+        raise ExperimentError(f"{path}: unknown top-level keys {sorted(unknown)}")
+    if not isinstance(data.get("tasks"), list) or not data["tasks"] or not all(isinstance(t, str) for t in data["tasks"]):
+        raise ExperimentError(f"{path}: 'tasks' must be a non-empty list of environment ids")
+    if not isinstance(data.get("variants"), dict) or not data["variants"]:
+        raise ExperimentError(f"{path}: needs at least one [variants.<name>] table")
+    for scope, table in [("common", data.get("common", {}))] + [(f"variants.{k}", v) for k, v in data["variants"].items()]:
+        if not isinstance(table, dict):
+            raise ExperimentError(f"{path}: [{scope}] must be a table of silcr train options")
+        for key in table:
+            k = key.replace("-", "_")
+            if k in _SWEEP_OWNED:
+                raise ExperimentError(f"{path}: [{scope}] may not set {key!r}; the sweep sets it per cell")
+            if k not in FIELDS or "train" not in FIELDS[k].metadata["roles"]:
+                raise ExperimentError(f"{path}: [{scope}] {key!r} is not a `silcr train` option")
+    data.setdefault("name", path.stem)
+    return data
+
+
+def cells_of(exp: dict[str, Any], seeds: list[int]) -> list[Cell]:
+    common = {k.replace("-", "_"): v for k, v in exp.get("common", {}).items()}
+    out = []
+    for task in exp["tasks"]:
+        for variant, table in exp["variants"].items():
+            opts = common | {k.replace("-", "_"): v for k, v in table.items()} | {"env": task}
+            opts = {k: (v.replace("{task}", task) if isinstance(v, str) else v) for k, v in opts.items()}
+            out.extend(Cell(variant, task, s, opts) for s in seeds)
+    return out
+
+
+def cell_state(run_dir: Path) -> str:
+    if (run_dir / DONE_MARKER).exists():
+        return "done"
+    if (run_dir / "checkpoints" / "learner.pt").exists():
+        return "partial"
+    return "new"
+
+
+def _command(cell: Cell, runs_dir: Path, port: int, resume: bool) -> list[str]:
+    cmd = [sys.executable, "-m", "common.cli", "train", "--run", cell.name, "--runs-dir", str(runs_dir),
+           "--seed", str(cell.seed), "--zenoh-listen", f"tcp/127.0.0.1:{port}"]
+    for k, v in sorted(cell.options.items()):
+        flag = option_name(k)
+        if isinstance(v, bool):
+            cmd += [flag] if v else []
+        elif isinstance(v, list):
+            cmd += [flag, *map(str, v)]
+        else:
+            cmd += [flag, str(v)]
+    return cmd + (["--resume"] if resume else [])
+
+
+def _port_free(port: int) -> bool:
+    import socket
+
+    with socket.socket() as s:
+        try:
+            s.bind(("127.0.0.1", port))
+        except OSError:
+            return False
+    return True
+
+
+class _Running:
+    def __init__(self, cell: Cell, proc: subprocess.Popen, port: int, started: float, log) -> None:
+        self.cell, self.proc, self.port, self.started, self.log = cell, proc, port, started, log
+
+
+def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: int, shard: tuple[int, int],
+              only: str, dry_run: bool, port_base: int) -> int:
+    cells = [c for c in cells_of(exp, seeds) if only in c.name]
+    k, n = shard
+    cells = [c for i, c in enumerate(cells) if i % n == k - 1]
+    states = {c.name: cell_state(runs_dir / c.name) for c in cells}
+    todo = [c for c in cells if states[c.name] != "done"]
+    print(f"silcr sweep {exp['name']}: {len(cells)} cells in {runs_dir} (shard {k}/{n}); "
+          f"{len(cells) - len(todo)} done, {sum(s == 'partial' for s in states.values())} to resume, "
+          f"{sum(s == 'new' for s in states.values())} new", flush=True)
+    if dry_run:
+        for c in cells:
+            print(f"  {states[c.name]:8s} {c.name}")
+        return 0
+    runs_dir.mkdir(parents=True, exist_ok=True)
+
+    def sigterm(signum: int, frame: object) -> None:  # `kill` takes the same clean path as Ctrl-C
+        raise KeyboardInterrupt
+
+    signal.signal(signal.SIGTERM, sigterm)
+    running: list[_Running] = []
+    failed: list[str] = []
+    finished = len(cells) - len(todo)
+    free_ports = [p for p in range(port_base, port_base + 64)]
+    try:
+        while todo or running:
+            while todo and len(running) < parallel:
+                cell = todo.pop(0)
+                port = next((p for p in free_ports if p not in {r.port for r in running} and _port_free(p)), None)
+                if port is None:
+                    raise ExperimentError(f"no free port in {port_base}-{port_base + 63}; pass another --port-base")
+                resume = states[cell.name] == "partial"
+                (runs_dir / cell.name).mkdir(parents=True, exist_ok=True)
+                log = open(runs_dir / cell.name / "sweep.log", "ab")
+                # Own process group: Ctrl-C reaches the sweep only, and it stops the cells in order.
+                proc = subprocess.Popen(_command(cell, runs_dir, port, resume), stdout=log, stderr=subprocess.STDOUT,
+                                        start_new_session=True, env=os.environ | {"PYTHONUNBUFFERED": "1"})
+                running.append(_Running(cell, proc, port, time.monotonic(), log))
+                print(f"[{finished}/{len(cells)}] {'resume' if resume else 'start '} {cell.name} "
+                      f"(log: {runs_dir / cell.name / 'sweep.log'})", flush=True)
+            time.sleep(0.5)
+            for r in list(running):
+                rc = r.proc.poll()
+                if rc is None:
+                    continue
+                running.remove(r)
+                r.log.close()
+                minutes = (time.monotonic() - r.started) / 60
+                if rc == 0:
+                    finished += 1
+                    marker = {"cell": r.cell.name, "variant": r.cell.variant, "task": r.cell.task, "seed": r.cell.seed,
+                              "finished_at": time.time(), "minutes": minutes}
+                    (runs_dir / r.cell.name / DONE_MARKER).write_text(json.dumps(marker))
+                    print(f"[{finished}/{len(cells)}] done   {r.cell.name} in {minutes:.1f} min", flush=True)
+                else:
+                    failed.append(r.cell.name)
+                    print(f"[{finished}/{len(cells)}] FAILED {r.cell.name} (exit {rc}); see {runs_dir / r.cell.name / 'sweep.log'}",
+                          flush=True)
+    except KeyboardInterrupt:
+        print(f"\nsilcr sweep: interrupted; stopping {len(running)} running cell(s); re-run the same command to resume",
+              file=sys.stderr, flush=True)
+        for r in running:
+            r.proc.send_signal(signal.SIGINT)
+        for r in running:
+            try:
+                r.proc.wait(60)
+            except subprocess.TimeoutExpired:
+                os.killpg(r.proc.pid, signal.SIGKILL)
+                r.proc.wait()
+            r.log.close()
+        return 130
+    if failed:
+        print(f"silcr sweep: {len(failed)} cell(s) failed: {', '.join(failed)}", file=sys.stderr)
+        return 1
+    print(f"silcr sweep: all {len(cells)} cells done; plot with: silcr plot {runs_dir}/* -o {runs_dir}/curves.png")
+    return 0
+
+
+def run_sweep_cli(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    try:
+        exp = load_experiment(Path(args.experiment))
+        seeds = parse_seeds(args.seeds)
+    except ExperimentError as e:
+        parser.error(str(e))
+    if args.parallel < 1:
+        parser.error(f"--parallel must be >= 1, got {args.parallel}")
+    try:
+        k, n = (int(x) for x in args.shard.split("/"))
+        if not 1 <= k <= n:
+            raise ValueError
+    except ValueError:
+        parser.error(f"--shard {args.shard!r}: use K/N with 1 <= K <= N, e.g. 2/3")
+    runs_dir = Path(args.runs_dir or exp.get("runs_dir") or Path("runs") / exp["name"])
+    # Check every cell's options the way `silcr train` would, before starting any.
+    from common.cli import build_parser
+    from common.config import resolve
+
+    train = build_parser()[1]["train"]
+    for cell in cells_of(exp, seeds):
+        cmd = _command(cell, runs_dir, args.port_base, False)[3:]  # drop "python -m common.cli"
+        try:
+            resolve(train.parse_args(cmd[1:]), "train")
+        except (ConfigError, SystemExit) as e:
+            parser.error(f"cell {cell.name}: {e}" if isinstance(e, ConfigError) else f"cell {cell.name} has a bad option")
+    try:
+        return run_sweep(exp, seeds, runs_dir, args.parallel, (k, n), args.only, args.dry_run, args.port_base)
+    except ExperimentError as e:
+        print(f"silcr sweep: error: {e}", file=sys.stderr)
+        return 1

@@ -1,0 +1,96 @@
+"""Buffer checkpoints: D_O, D_E and counters survive a restart; a corrupt file is refused."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from buffer_service import snapshot
+from buffer_service.service import ReplayState
+from common import protocol as P
+from common.config import Config
+from common.envs import EnvSpec
+from tests.conftest import make_episode
+
+ENV = "InvertedPendulum-v5"
+
+
+@pytest.fixture(scope="module")
+def spec():
+    return EnvSpec.of(ENV)
+
+
+def _state(spec, **kw):
+    return ReplayState(Config(run="snap", env=ENV, expert_capacity=60, online_capacity=200, learning_starts=10, **kw), spec)
+
+
+def _fill(state, n=30, first_seq=0):
+    rng = np.random.default_rng(first_seq)
+    for i in range(first_seq, first_seq + n):
+        state.ingest(P.EpisodeCodec.encode(make_episode(int(rng.integers(5, 15)), ret=float(rng.normal()), seq=i, start=i * 100)))
+    state.answer(P.SampleRequest(2, 16).encode())
+
+
+def test_snapshot_restores_both_tables_and_counters(tmp_path, spec):
+    state = _state(spec)
+    _fill(state)
+    path = tmp_path / "buffer.ckpt"
+    snap = snapshot.take(state)
+    # Episodes in both tables are written once.
+    assert len(snap.episodes) == len({id(e) for e in state.fifo.episodes() + state.heap.episodes()})
+    snapshot.write(path, snap)
+
+    back = _state(spec)
+    snapshot.restore(path, back)
+    assert [e.seq for e in back.fifo.episodes()] == [e.seq for e in state.fifo.episodes()]
+    assert sorted(back.heap.returns()) == sorted(state.heap.returns())
+    assert len(back.heap) == len(state.heap) and len(back.fifo) == len(state.fifo)
+    for name in ("episodes_received", "transitions_received", "batches_served", "last_seq"):
+        assert getattr(back, name) == getattr(state, name)
+    assert (back.limiter.inserts, back.limiter.samples) == (state.limiter.inserts, state.limiter.samples)
+    # Shared episodes stay shared after a restore: memory is not doubled.
+    fifo_ids = {id(e) for e in back.fifo.episodes()}
+    assert any(id(e) in fifo_ids for e in back.heap.episodes())
+    # The same eviction order: the next better episode evicts the same one in both.
+    ep = P.EpisodeCodec.encode(make_episode(10, ret=5.0, seq=99, start=1e4))
+    state.ingest(ep)
+    back.ingest(ep)
+    assert sorted(back.heap.returns()) == sorted(state.heap.returns())
+    # An episode sent before the checkpoint is still recognised as a duplicate.
+    with pytest.raises(P.ProtocolError, match="again"):
+        back.ingest(P.EpisodeCodec.encode(make_episode(5, seq=3)))
+
+
+def test_corrupt_or_foreign_snapshot_is_refused(tmp_path, spec):
+    state = _state(spec)
+    _fill(state)
+    path = tmp_path / "buffer.ckpt"
+    snapshot.write(path, snapshot.take(state))
+    data = path.read_bytes()
+    path.write_bytes(data[: len(data) // 2])
+    with pytest.raises(snapshot.SnapshotError, match="truncated|corrupt"):
+        snapshot.restore(path, _state(spec))
+    path.write_bytes(b"\x00garbage")
+    with pytest.raises(snapshot.SnapshotError, match="not a silcr buffer checkpoint|corrupt"):
+        snapshot.restore(path, _state(spec))
+    snapshot.write(path, snapshot.take(state))
+    with pytest.raises(snapshot.SnapshotError, match="this run is sac"):
+        snapshot.restore(path, _state(spec, algo="sac"))
+
+
+def test_a_failed_write_leaves_the_previous_checkpoint(tmp_path, spec, monkeypatch):
+    state = _state(spec)
+    _fill(state, 10)
+    path = tmp_path / "buffer.ckpt"
+    snapshot.write(path, snapshot.take(state))
+    before = path.read_bytes()
+    _fill(state, 5, first_seq=10)
+
+    def crash(ep):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(P.EpisodeCodec, "encode", staticmethod(crash))
+    with pytest.raises(OSError):
+        snapshot.write(path, snapshot.take(state))
+    assert path.read_bytes() == before
+    assert [p.name for p in tmp_path.iterdir()] == ["buffer.ckpt"]

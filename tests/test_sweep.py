@@ -1,0 +1,122 @@
+"""`silcr sweep`: experiment files, seed ranges, and resuming a cell interrupted midway."""
+
+from __future__ import annotations
+
+import csv
+import os
+import signal
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+from deploy.sweep import ExperimentError, cell_state, cells_of, load_experiment, parse_seeds
+from learner.checkpoint import load_checkpoint
+from tests.helpers import REPO, Processes, free_port, tagged_pids, wait_for
+
+EXPERIMENTS = sorted((REPO / "experiments").glob("*.toml"))
+
+
+def test_seed_ranges():
+    assert parse_seeds("0-4") == [0, 1, 2, 3, 4]
+    assert parse_seeds("0,3,7") == [0, 3, 7]
+    assert parse_seeds("0-2,5,1") == [0, 1, 2, 5]
+    for bad in ("a", "4-2", "1-"):
+        with pytest.raises(ExperimentError):
+            parse_seeds(bad)
+
+
+@pytest.mark.parametrize("path", EXPERIMENTS, ids=[p.stem for p in EXPERIMENTS])
+def test_shipped_experiments_are_valid(path):
+    exp = load_experiment(path)
+    cells = cells_of(exp, parse_seeds(exp["seeds"]))
+    assert len(cells) == len(exp["tasks"]) * len(exp["variants"]) * len(parse_seeds(exp["seeds"]))
+    assert len({c.name for c in cells}) == len(cells)
+
+
+def test_paper_experiments_cover_the_papers_grid():
+    paper = load_experiment(REPO / "experiments" / "paper.toml")
+    assert set(paper["tasks"]) == {"Swimmer-v5", "Hopper-v5", "HalfCheetah-v5", "Walker2d-v5", "Humanoid-v5"}
+    assert {(v["algo"], v.get("reward", "episodic")) for v in paper["variants"].values()} == {
+        ("silcr", "episodic"), ("sac", "episodic"), ("sac", "dense"), ("sqil", "episodic")}
+    ablation = load_experiment(REPO / "experiments" / "ablation-m.toml")
+    assert sorted(v["expert_capacity"] for v in ablation["variants"].values()) == [10_000, 20_000, 50_000, 100_000, 1_000_000]
+    assert ablation["tasks"] == ["Humanoid-v5"]
+
+
+@pytest.mark.parametrize("text, message", [
+    ('tasks = ["Hopper-v5"]\n[variants.a]\nalgo = "silcr"\nbogus = 1\n', "'bogus' is not a `silcr train` option"),
+    ('tasks = ["Hopper-v5"]\n[variants.a]\nseed = 3\n', "may not set 'seed'"),
+    ('tasks = []\n[variants.a]\n', "'tasks' must be a non-empty list"),
+    ('tasks = ["Hopper-v5"]\n', "needs at least one [variants.<name>] table"),
+    ('tasks = ["Hopper-v5"\n', "not valid TOML"),
+])
+def test_bad_experiment_files_are_one_line_errors(tmp_path, text, message):
+    path = tmp_path / "x.toml"
+    path.write_text(text)
+    with pytest.raises(ExperimentError) as e:
+        load_experiment(path)
+    assert message in str(e.value)
+    r = subprocess.run([sys.executable, "-m", "common.cli", "sweep", str(path), "--dry-run"],
+                       capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
+
+
+SMALL_EXPERIMENT = """
+name = "tiny"
+tasks = ["InvertedPendulum-v5"]
+[common]
+hidden = [32, 32]
+learning_starts = 500
+batch_size = 64
+eval_episodes = 1
+eval_interval = 1000
+spi_tolerance = 500
+total_steps = 4000
+checkpoint_interval = 100
+buffer_checkpoint_interval = 1
+stats_interval = 0.3
+[variants.silcr]
+algo = "silcr"
+"""
+
+
+def test_an_interrupted_cell_resumes_from_its_checkpoint(tmp_path):
+    exp = tmp_path / "tiny.toml"
+    exp.write_text(SMALL_EXPERIMENT)
+    runs = tmp_path / "runs"
+    cell_dir = runs / "silcr_InvertedPendulum-v5_s0"
+    procs = Processes(tmp_path)
+    args = ["sweep", str(exp), "--seeds", "0", "--runs-dir", str(runs), "--port-base", str(free_port())]
+    try:
+        sweep = procs.start("sweep1", *args, new_session=True)
+        ckpt = cell_dir / "checkpoints" / "learner.pt"
+        wait_for(lambda: ckpt.exists() and load_checkpoint(ckpt)["counters"]["updates"] >= 200, 240,
+                 "the cell to write learner checkpoints")
+        os.killpg(sweep.pid, signal.SIGINT)  # Ctrl-C in the sweep's terminal
+        assert sweep.wait(90) == 130, procs.log("sweep1")
+        assert cell_state(cell_dir) == "partial"
+        stopped_at = load_checkpoint(ckpt)["counters"]["updates"]
+        assert stopped_at < 3400  # really midway
+
+        sweep = procs.start("sweep2", *args)
+        assert sweep.wait(400) == 0, procs.log("sweep2") + (cell_dir / "sweep.log").read_text()[-3000:]
+    finally:
+        procs.stop_all()
+    assert "resume silcr_InvertedPendulum-v5_s0" in procs.log("sweep2")
+    assert cell_state(cell_dir) == "done"
+    learner_log = (cell_dir / "logs" / "learner.log").read_text()
+    assert learner_log.count("resumed from") == 1
+    assert "restored D_O" in (cell_dir / "logs" / "buffer.log").read_text()
+    rows = list(csv.DictReader(open(cell_dir / "progress.csv")))
+    updates = [int(r["updates"]) for r in rows]
+    assert updates == sorted(updates) and updates[-1] > stopped_at
+    assert int(rows[-1]["env_steps"]) >= 4000
+    # The resumed run did not collect the first part again: about one update per env step overall.
+    assert load_checkpoint(cell_dir / "checkpoints" / "learner.pt")["counters"]["updates"] < 4000 + 600
+
+    # A third run finds the cell done and starts nothing.
+    r = subprocess.run([sys.executable, "-m", "common.cli", *args], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode == 0 and "1 done" in r.stdout and "start" not in r.stdout
+    assert tagged_pids(procs.tag) == []
