@@ -175,6 +175,10 @@ def main(argv: list[str] | None = None) -> int:
         from deploy.monitor import run_monitor
 
         return run_monitor(cfg.run, cfg.connect, cfg.zenoh_mode, cfg.zenoh_config, args.once, args.json, args.timeout, stop)
+    if role == "actor" and cfg.actor_id == -1:
+        import secrets
+
+        cfg.actor_id = secrets.randbelow(2**31)  # distinct seeds and stats keys for identical replicas
     setup_logging(role if role != "actor" else f"actor-{cfg.actor_id}")
     if role == "buffer":
         from buffer_service.service import run_buffer

@@ -9,11 +9,12 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import os
 import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any
+from typing import Any, Mapping
 
 import tomli_w
 
@@ -91,7 +92,7 @@ class Config:
     # --- actors ----------------------------------------------------------------
     actors: int = _opt(1, {"train"}, "number of actor processes")
     max_restarts: int = _opt(5, {"train"}, "times `silcr train` restarts a component that dies (actors fresh; buffer and learner from their checkpoints) before giving up")
-    actor_id: int = _opt(0, {"actor"}, "this actor's id (also its seed offset)")
+    actor_id: int = _opt(0, {"actor"}, "this actor's id (also its seed offset); -1: a random id, for replicas that share one command (docker compose --scale)")
     envs_per_actor: int = _opt(1, {"train", "actor"}, "environments stepped by each actor with one batched forward pass")
     weights_poll_steps: int = _opt(50, {"train", "actor"}, "check for new weights every N steps")
     weights_wait: float = _opt(15.0, {"train", "actor"}, "seconds an actor waits at start for the learner's weights before acting with its own random policy")
@@ -192,11 +193,43 @@ def load_toml(path: str, role: str) -> dict[str, Any]:
     return out
 
 
-def resolve(args: argparse.Namespace, role: str) -> Config:
-    """Defaults < TOML file < command line, then validate."""
+ENV_PREFIX = "SILCR_"
+
+
+def load_environ(environ: Mapping[str, str], role: str) -> dict[str, Any]:
+    """Options from `SILCR_<OPTION>` variables (e.g. SILCR_TOTAL_STEPS=30000, SILCR_HIDDEN="800 400").
+
+    For containers: docker-compose sets settings per service without rewriting
+    commands. Only the options of `role` are read; a malformed value is a ConfigError.
+    """
+    out: dict[str, Any] = {}
+    for name, f in FIELDS.items():
+        raw = environ.get(ENV_PREFIX + name.upper())
+        if raw is None or role not in f.metadata["roles"]:
+            continue
+        label = ENV_PREFIX + name.upper()
+        t = str(f.type)
+        try:
+            if t == "bool":
+                if raw.strip().lower() not in ("1", "true", "yes", "0", "false", "no", ""):
+                    raise ValueError
+                value: Any = raw.strip().lower() in ("1", "true", "yes")
+            elif t.startswith("list"):
+                value = [int(v) if t == "list[int]" else v for v in raw.replace(",", " ").split()]
+            else:
+                value = {"int": int, "float": float, "str": str}[t](raw)
+        except ValueError:
+            raise ConfigError(label, f"expected {t}, got {raw!r}") from None
+        out[name] = _coerce(name, value, f"{label}: ")
+    return out
+
+
+def resolve(args: argparse.Namespace, role: str, environ: Mapping[str, str] | None = None) -> Config:
+    """Defaults < TOML file < SILCR_* environment variables < command line, then validate."""
     values: dict[str, Any] = {}
     if getattr(args, "config", None):
         values.update(load_toml(args.config, role))
+    values.update(load_environ(os.environ if environ is None else environ, role))
     for name in FIELDS:
         if name in vars(args):
             values[name] = getattr(args, name)
@@ -225,7 +258,7 @@ def validate(cfg: Config, role: str) -> None:
     positive("batch_size", 2)
     positive("eval_episodes", 0)
     positive("learning_starts", 0)
-    positive("actor_id", 0)
+    positive("actor_id", -1)
     positive("torch_threads", 0)
     positive("max_restarts", 0)
     positive("spi_tolerance", 1)
