@@ -89,21 +89,21 @@ def tagged_pids(tag: str) -> list[int]:
     return found
 
 
-def client_session(port: int) -> zenoh.Session:
+def client_session(port: int, host: str = "127.0.0.1") -> zenoh.Session:
     """A plain Zenoh client built here, not by the project: what an outside tool would open."""
     conf = zenoh.Config()
     conf.insert_json5("mode", '"client"')
-    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/127.0.0.1:{port}"]))
+    conf.insert_json5("connect/endpoints", json.dumps([f"tcp/{host}:{port}"]))
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("transport/shared_memory/enabled", "false")
     return zenoh.open(conf)
 
 
-def client_when_up(port: int, timeout: float = 60) -> zenoh.Session:
+def client_when_up(port: int, timeout: float = 60, host: str = "127.0.0.1") -> zenoh.Session:
     """A `client_session` once the router on `port` accepts it."""
     def attempt() -> zenoh.Session | None:
         try:
-            return client_session(port)
+            return client_session(port, host)
         except zenoh.ZError:
             return None
 

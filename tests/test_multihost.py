@@ -1,0 +1,166 @@
+"""Across hosts on one machine: Linux network namespaces joined by veth links.
+
+`hub` runs the router, the buffer service and the learner; actors run in two
+other namespaces with their own addresses and reach the hub only through their
+veth link, as on separate machines. The test process watches from the root
+namespace through a third link. Then one actor's link is cut for longer than
+Zenoh's lease and brought back: the actor must reconnect and go on publishing.
+"""
+
+from __future__ import annotations
+
+import os
+import secrets
+import shutil
+import subprocess
+import sys
+import time
+
+import pytest
+
+from common import protocol as P
+from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, tagged_pids, wait_for
+
+SMALL = """env = "InvertedPendulum-v5"
+hidden = [32, 32]
+learning_starts = 300
+batch_size = 32
+eval_episodes = 1
+stats_interval = 0.3
+spi_tolerance = 300
+total_steps = 100000000
+"""
+
+
+def _ip(*args: str) -> None:
+    subprocess.run(["ip", *args], check=True, capture_output=True, timeout=30)
+
+
+class Namespaces:
+    """hub + a1 + a2, and the root namespace linked to hub; torn down on exit."""
+
+    def __init__(self) -> None:
+        tag = secrets.token_hex(2)
+        self.hub, self.a1, self.a2 = f"silcr{tag}h", f"silcr{tag}a1", f"silcr{tag}a2"
+        self.net = 200 + secrets.randbelow(50)
+        self.tag = tag
+        self.created: list[str] = []
+
+    def addr(self, link: int, host: int) -> str:
+        return f"10.{self.net}.{link}.{host}"
+
+    def link_name(self, side: str, link: int) -> str:
+        return f"sv{self.tag}{side}{link}"  # <= 15 characters
+
+    def __enter__(self) -> "Namespaces":
+        for ns in (self.hub, self.a1, self.a2):
+            _ip("netns", "add", ns)
+            self.created.append(ns)
+            _ip("-n", ns, "link", "set", "lo", "up")
+        # link 0: root <-> hub; link 1: a1 <-> hub; link 2: a2 <-> hub
+        for link, ns in ((0, None), (1, self.a1), (2, self.a2)):
+            near, far = self.link_name("x", link), self.link_name("h", link)
+            _ip("link", "add", near, "type", "veth", "peer", "name", far)
+            _ip("link", "set", far, "netns", self.hub)
+            _ip("-n", self.hub, "addr", "add", f"{self.addr(link, 1)}/24", "dev", far)
+            _ip("-n", self.hub, "link", "set", far, "up")
+            if ns is not None:
+                _ip("link", "set", near, "netns", ns)
+                _ip("-n", ns, "addr", "add", f"{self.addr(link, 2)}/24", "dev", near)
+                _ip("-n", ns, "link", "set", near, "up")
+            else:
+                _ip("addr", "add", f"{self.addr(link, 2)}/24", "dev", near)
+                _ip("link", "set", near, "up")
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        subprocess.run(["ip", "link", "del", self.link_name("x", 0)], capture_output=True)
+        for ns in self.created:
+            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
+
+
+def _can_make_namespaces() -> str | None:
+    if shutil.which("ip") is None:
+        return "iproute2 (`ip`) is not installed"
+    if os.geteuid() != 0:
+        return "network namespaces need root"
+    probe = f"silcrprobe{secrets.token_hex(2)}"
+    r = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
+    if r.returncode != 0:
+        return f"cannot create a network namespace here: {r.stderr.strip()}"
+    subprocess.run(["ip", "netns", "del", probe], capture_output=True)
+    return None
+
+
+pytestmark = pytest.mark.skipif(bool(_can_make_namespaces()), reason=str(_can_make_namespaces()))
+
+
+def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
+    run = "multihost"
+    keys = P.Keys(run)
+    port = free_port()
+    (tmp_path / "small.toml").write_text(SMALL)
+    procs = Processes(tmp_path)
+
+    def start(name: str, ns: str, *args: str):
+        log = open(tmp_path / f"{name}.log", "w")
+        procs.procs[name] = subprocess.Popen(
+            ["ip", "netns", "exec", ns, sys.executable, "-m", "common.cli", *args],
+            stdout=log, stderr=subprocess.STDOUT, env=procs.env(), cwd=REPO,
+        )
+
+    with Namespaces() as nets:
+        try:
+            start("router", nets.hub, "router", "--listen", f"tcp/0.0.0.0:{port}")
+            local = ["--run", run, "--config", str(tmp_path / "small.toml"), "--connect", f"tcp/127.0.0.1:{port}"]
+            start("buffer", nets.hub, "buffer", *local)
+            start("learner", nets.hub, "learner", *local, "--runs-dir", str(tmp_path / "runs"))
+            for i, ns in ((1, nets.a1), (2, nets.a2)):
+                start(f"actor-{i}", ns, "actor", "--run", run, "--config", str(tmp_path / "small.toml"),
+                      "--actor-id", str(i), "--zenoh-mode", "client", "--connect", f"tcp/{nets.addr(i, 1)}:{port}")
+
+            session = client_when_up(port, host=nets.addr(0, 1))
+            stats = LatestJson(session, keys.stats_all)
+
+            def check_alive():
+                dead = [n for n, p in procs.procs.items() if p.poll() is not None]
+                assert not dead, f"{dead} exited: {procs.log(dead[0])[-1500:]}"
+
+            def actor(i):
+                check_alive()
+                return stats.get(keys.stats_actor(i)) or {}
+
+            def learner():
+                check_alive()
+                return stats.get(keys.stats_learner) or {}
+
+            # Episodes cross from both actor hosts, weights come back, training advances.
+            wait_for(lambda: learner().get("updates", 0) > 30, 180, "training with actors on two other hosts")
+            wait_for(lambda: actor(1).get("policy_version", -1) > 0 and actor(2).get("policy_version", -1) > 0, 60,
+                     "learner weights to reach both actor hosts")
+            buf = stats.get(keys.stats_buffer)
+            assert buf["actors_alive"] == 2 and buf["episodes_rejected"] == 0
+
+            # Cut actor 1's host off for longer than the Zenoh lease (10 s), then reconnect it.
+            a1_link = nets.link_name("x", 1)
+            subprocess.run(["ip", "-n", nets.a1, "link", "set", a1_link, "down"], check=True)
+            time.sleep(3)
+            frozen = actor(1).get("episodes", 0)
+            wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("actors_alive") == 1, 30,
+                     "the buffer to notice the lost actor")
+            assert actor(1).get("episodes", 0) == frozen  # nothing arrives from the cut-off host
+            u = learner()["updates"]
+            wait_for(lambda: learner()["updates"] > u + 10, 60, "training to go on with the other actor")
+            time.sleep(max(0.0, 12 - 3))
+            subprocess.run(["ip", "-n", nets.a1, "link", "set", a1_link, "up"], check=True)
+            wait_for(lambda: actor(1).get("episodes", 0) > frozen + 3, 120, "actor 1 to reconnect and publish again")
+            wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("actors_alive") == 2, 60,
+                     "the buffer to see actor 1 again")
+            v = actor(1).get("policy_version", 0)
+            wait_for(lambda: actor(1).get("policy_version", 0) > v, 60, "new weights to reach actor 1 again")
+            assert procs.procs["actor-1"].poll() is None  # the same process, reconnected
+            assert stats.get(keys.stats_buffer)["episodes_rejected"] == 0
+            session.close()
+        finally:
+            procs.stop_all()
+    assert tagged_pids(procs.tag) == []
