@@ -43,7 +43,11 @@ def load_run(path: Path) -> RunCurve:
         returns = np.array([float(r["eval_return"]) for r in rows])
     except (KeyError, ValueError) as e:
         raise ValueError(f"{path}: progress.csv lacks env_steps/eval_return numbers ({e})") from None
-    label = cfg.get("algo", "?") + ("" if cfg.get("algo") == "silcr" else f"-{cfg.get('reward', '')}")
+    algo = cfg.get("algo", "?")
+    # SILCR and SQIL ignore the env's reward; SAC's label says which one it had.
+    label = f"{algo}-{cfg.get('reward', '')}" if algo == "sac" else algo
+    if algo == "silcr" and cfg.get("expert_capacity", 50_000) != 50_000:
+        label += f" (M={cfg['expert_capacity']:.0e})".replace("e+0", "e")  # the M ablation: one curve per M
     return RunCurve(path, cfg.get("env", "?"), label, int(cfg.get("seed", 0)), steps, returns)
 
 

@@ -94,3 +94,17 @@ def test_eval_rejects_a_corrupt_checkpoint(tmp_path):
     bad.write_bytes(b"not a checkpoint")
     r = subprocess.run([sys.executable, "-m", "common.cli", "eval", str(bad)], capture_output=True, text=True, cwd=REPO, timeout=60)
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
+    from common.config import Config
+
+    specs = [("silcr", "episodic", 50_000), ("silcr", "episodic", 10_000), ("sac", "dense", 50_000), ("sqil", "episodic", 50_000)]
+    labels = []
+    for i, (algo, reward, m) in enumerate(specs):
+        d = tmp_path / f"r{i}"
+        d.mkdir()
+        Config(run=d.name, env="Humanoid-v5", algo=algo, reward=reward, expert_capacity=m).save(d / "config.toml")
+        (d / "progress.csv").write_text("time,env_steps,updates,policy_version,eval_return\n0,0,0,0,1\n")
+        labels.append(load_run(d).algo)
+    assert labels == ["silcr", "silcr (M=1e4)", "sac-dense", "sqil"]
