@@ -11,7 +11,9 @@ import numpy as np
 from common import protocol as P
 from common.envs import make_env
 
-from .procs import Components, LatestStats, wait_until
+from deploy.monitor import StatsSnapshot
+
+from .procs import Components, wait_until
 from .timing import print_table, write_json
 
 
@@ -39,7 +41,8 @@ def actor_rate(env_id: str, envs: int, seconds: float) -> float:
         comp.start("actor", "--run", run, "--env", env_id, "--envs-per-actor", str(envs), "--weights-wait", "0",
                    "--stats-interval", "0.5")
         with comp.session() as s:
-            stats = LatestStats(s, keys.stats_actor(0))
+            stats = StatsSnapshot(keys)
+            s.declare_subscriber(keys.stats_all, stats.on_sample)
             wait_until(lambda: stats.get(keys.stats_actor(0)).get("steps", 0) > 500, 60, "the actor to run")
             a, t0 = stats.get(keys.stats_actor(0))["steps"], time.perf_counter()
             time.sleep(seconds)

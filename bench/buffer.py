@@ -22,7 +22,9 @@ from common.config import Config
 from common.envs import EnvSpec
 from learner.sac import Sac, SacHyper
 
-from .procs import Components, LatestStats, wait_until
+from deploy.monitor import StatsSnapshot
+
+from .procs import Components, wait_until
 from .reference_sac import random_batch
 from .timing import print_table, rate, write_json
 
@@ -113,7 +115,8 @@ def _over_zenoh(env_id: str, payloads: list[bytes], quick: bool) -> tuple[float,
         comp.start("buffer", "--run", run, "--env", env_id, "--learning-starts", "1000", "--spi-tolerance", "1e9",
                    "--stats-interval", "0.2")
         with comp.session() as s:
-            stats = LatestStats(s, keys.stats_buffer)
+            stats = StatsSnapshot(keys)
+            s.declare_subscriber(keys.stats_all, stats.on_sample)
             pub = s.declare_publisher(keys.episodes, congestion_control=zenoh.CongestionControl.BLOCK)
             wait_until(lambda: pub.matching_status.matching, 60, "the buffer service")
             t0 = time.perf_counter()

@@ -11,7 +11,9 @@ from typing import Any
 
 from common import protocol as P
 
-from .procs import Components, LatestStats, free_port, wait_until
+from deploy.monitor import StatsSnapshot
+
+from .procs import Components, free_port, wait_until
 from .timing import print_table, write_json
 
 
@@ -34,7 +36,8 @@ def run(out_dir: Path, quick: bool = False, env_id: str = "Hopper-v5", actors: i
     actor_stats: dict[str, Any] = {}
     try:
         with comp.session() as s:
-            stats = LatestStats(s, keys.stats_all)
+            stats = StatsSnapshot(keys)
+            s.declare_subscriber(keys.stats_all, stats.on_sample)
             wait_until(lambda: stats.get(keys.stats_learner).get("updates", 0) > 0, 300, "the first update")
             while proc.poll() is None:
                 cur = stats.get(keys.stats_learner)

@@ -2,13 +2,11 @@
 
 from __future__ import annotations
 
-import json
 import signal
 import socket
 import subprocess
 import sys
 import tempfile
-import threading
 import time
 from pathlib import Path
 from typing import Any, Callable
@@ -57,21 +55,6 @@ class Components:
                 p.wait(20)
             except subprocess.TimeoutExpired:
                 p.kill()
-
-
-class LatestStats:
-    def __init__(self, session: zenoh.Session, key_expr: str) -> None:
-        self.latest: dict[str, dict[str, Any]] = {}
-        self._lock = threading.Lock()
-        session.declare_subscriber(key_expr, self._on)
-
-    def _on(self, sample: zenoh.Sample) -> None:
-        with self._lock:
-            self.latest[str(sample.key_expr)] = json.loads(sample.payload.to_bytes())
-
-    def get(self, key: str) -> dict[str, Any]:
-        with self._lock:
-            return dict(self.latest.get(key, {}))
 
 
 def wait_until(pred: Callable[[], Any], timeout: float, what: str) -> Any:

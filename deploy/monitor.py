@@ -43,6 +43,15 @@ class StatsSnapshot:
             elif key.startswith(self.keys.prefix + "/stats/actor/"):
                 self.actors[key.rsplit("/", 1)[-1]] = data
 
+    def get(self, key: str) -> dict[str, Any]:
+        """The latest message on one stats key (`keys.stats_buffer`, `keys.stats_actor(i)`, ...), or {}."""
+        with self._lock:
+            if key == self.keys.stats_buffer:
+                return dict(self.buffer or {})
+            if key == self.keys.stats_learner:
+                return dict(self.learner or {})
+            return dict(self.actors.get(key.rsplit("/", 1)[-1], {}))
+
     def as_dict(self) -> dict[str, Any]:
         with self._lock:
             return {"run": self.keys.run, "buffer": self.buffer, "learner": self.learner, "actors": dict(self.actors)}
