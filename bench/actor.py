@@ -37,7 +37,8 @@ def actor_rate(env_id: str, envs: int, seconds: float) -> float:
     comp = Components()
     try:
         comp.start("router")
-        comp.start("buffer", "--run", run, "--env", env_id, "--no-throttle", "--stats-interval", "0.5")
+        comp.start("buffer", "--run", run, "--env", env_id, "--no-throttle", "--stats-interval", "0.5",
+                   "--runs-dir", str(comp.dir))
         comp.start("actor", "--run", run, "--env", env_id, "--envs-per-actor", str(envs), "--weights-wait", "0",
                    "--stats-interval", "0.5")
         with comp.session() as s:

@@ -113,7 +113,7 @@ def _over_zenoh(env_id: str, payloads: list[bytes], quick: bool) -> tuple[float,
     try:
         comp.start("router")
         comp.start("buffer", "--run", run, "--env", env_id, "--learning-starts", "1000", "--spi-tolerance", "1e9",
-                   "--stats-interval", "0.2")
+                   "--stats-interval", "0.2", "--runs-dir", str(comp.dir))
         with comp.session() as s:
             stats = StatsSnapshot(keys)
             s.declare_subscriber(keys.stats_all, stats.on_sample)
