@@ -2,9 +2,14 @@
 
 import os
 
-# NumPy's OpenBLAS runs each matmul on one busy-waiting thread per core. An actor's
-# forward pass (2-16 observations through 800-400 layers) then took 20 ms instead of
-# 0.1 ms on a 2-core machine where other silcr processes hold the cores
-# (docs/performance.md). Every silcr process shares its machine with others, so each
-# gets one BLAS thread; the learner's torch has its own pool (--torch-threads).
+# silcr processes share their machine with each other (a learner beside its actors,
+# several runs of a sweep), and thread pools that busy-wait collapse when another
+# process holds a core they spin on. Measured on a 2-core machine with a second run
+# going (docs/performance.md):
+# * NumPy's OpenBLAS: an actor's forward pass for 4 envs took 20 ms instead of 0.1 ms,
+#   so each process gets one BLAS thread (actors are single-threaded by design);
+# * torch's OpenMP pool: an 800-400 SAC update on 2 threads ran at 1.4 updates/s
+#   instead of 35, so idle OpenMP threads sleep instead of spinning.
+# Both are defaults: a value already in the environment wins.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
+os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

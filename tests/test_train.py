@@ -139,16 +139,20 @@ def test_a_killed_buffer_comes_back_from_its_checkpoint_and_the_learner_resumes(
     try:
         session = client_when_up(port)
         stats = LatestJson(session, keys.stats_all)
-        wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("checkpoints_written", 0) >= 2
-                 and (stats.get(keys.stats_learner) or {}).get("updates", 0) > 50, 120, "training and buffer checkpoints")
-        before = stats.get(keys.stats_buffer)
+        before = wait_for(lambda: (b := stats.get(keys.stats_buffer) or {}).get("checkpoint_transitions", 0) > 500
+                          and (stats.get(keys.stats_learner) or {}).get("updates", 0) > 50 and b,
+                          120, "training and a buffer checkpoint with data")
         _kill_and_wait_for_restart(run_dir / "pids.json", "buffer")
         restored = wait_for(lambda: (b := stats.get(keys.stats_buffer)) and "restored_transitions" in b and b, 60,
                             "the restarted buffer's stats")
         # It came back with what it had, not empty: at least the transitions of a checkpoint taken before the kill.
-        assert restored["restored_transitions"] >= before["checkpoint_transitions"] > 0
+        assert restored["restored_transitions"] >= before["checkpoint_transitions"]
         assert restored["online_transitions"] >= before["checkpoint_transitions"]
-        assert train.wait(300) == 0, procs.log("train")
+        try:
+            assert train.wait(300) == 0, procs.log("train")
+        except subprocess.TimeoutExpired:
+            pytest.fail("the run did not finish; latest stats: " + json.dumps(
+                {k: stats.get(k) for k in (keys.stats_buffer, keys.stats_learner, keys.stats_actor(0), keys.stats_actor(1))}))
         learner = stats.get(keys.stats_learner)
         session.close()
     finally:
