@@ -2,8 +2,10 @@
 
 Starts a Zenoh router, the buffer service, the learner and N actors with the
 `spawn` start method (a forked child of a process with a Zenoh session hangs
-or talks to nobody), shows a progress bar fed by the stats topics, and ends
-everything when the learner finishes, a component dies, or on Ctrl-C. Each
+or talks to nobody), shows a progress bar fed by the stats topics, restarts a
+component that dies (actors fresh, buffer and learner from their checkpoints, up
+to --max-restarts), and ends everything when the learner finishes, a component
+dies for good, or on Ctrl-C. Each
 child writes its log to `<run dir>/logs/<component>.log` and stops by itself
 if this process disappears.
 """
