@@ -19,6 +19,7 @@ import zenoh
 DEFAULT_ROUTER = "tcp/127.0.0.1:7447"
 DEFAULT_PEER_LISTEN = "tcp/127.0.0.1:0"
 BLOCK_WAIT_BEFORE_CLOSE_US = 60_000_000
+ROUTER_BLOCK_WAIT_BEFORE_CLOSE_US = 5_000_000
 
 _log_initialised = False
 
@@ -40,12 +41,10 @@ def _base(zenoh_config: str) -> zenoh.Config:
     return zenoh.Config()
 
 
-def _common(conf: zenoh.Config) -> zenoh.Config:
+def _common(conf: zenoh.Config, block_wait_us: int = BLOCK_WAIT_BEFORE_CLOSE_US) -> zenoh.Config:
     conf.insert_json5("scouting/multicast/enabled", "false")
     conf.insert_json5("transport/shared_memory/enabled", "false")
-    conf.insert_json5(
-        "transport/link/tx/queue/congestion_control/block/wait_before_close", str(BLOCK_WAIT_BEFORE_CLOSE_US)
-    )
+    conf.insert_json5("transport/link/tx/queue/congestion_control/block/wait_before_close", str(block_wait_us))
     return conf
 
 
@@ -74,7 +73,13 @@ def session_config(
 
 
 def router_config(listen: list[str], connect: list[str] | None = None, zenoh_config: str = "") -> zenoh.Config:
-    conf = _common(_base(zenoh_config))
+    # The router forwards BLOCK messages (weights, control) to every actor. A link that
+    # went dead without closing (a cable pulled, a veth down) fills its queue, and the
+    # router then waits up to wait_before_close before dropping that link, stalling
+    # every other link it serves meanwhile (measured: 60 s stalled the whole run and
+    # cost a healthy actor its lease). Components keep the long wait for their own
+    # publishers; the router gives up on a dead link after Zenoh's default 5 s.
+    conf = _common(_base(zenoh_config), ROUTER_BLOCK_WAIT_BEFORE_CLOSE_US)
     try:
         conf.insert_json5("mode", '"router"')
         conf.insert_json5("listen/endpoints", json.dumps(list(listen)))

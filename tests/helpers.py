@@ -44,7 +44,9 @@ class Processes:
         self.procs: dict[str, subprocess.Popen] = {}
 
     def env(self) -> dict[str, str]:
-        return {**os.environ, "SILCR_TEST_TAG": self.tag, "PYTHONUNBUFFERED": "1"}
+        # SILCR_RUNS_DIR: checkpoints of components started without --runs-dir stay out of the repository.
+        return {**os.environ, "SILCR_TEST_TAG": self.tag, "PYTHONUNBUFFERED": "1",
+                "SILCR_RUNS_DIR": str(self.log_dir / "runs")}
 
     def start(self, name: str, *args: str, new_session: bool = False) -> subprocess.Popen:
         log = open(self.log_dir / f"{name}.log", "w")

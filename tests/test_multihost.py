@@ -146,12 +146,14 @@ def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
             subprocess.run(["ip", "-n", nets.a1, "link", "set", a1_link, "down"], check=True)
             time.sleep(3)
             frozen = actor(1).get("episodes", 0)
-            wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("actors_alive") == 1, 30,
+            t_cut = time.monotonic()
+            wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("actors_alive") == 1, 90,
                      "the buffer to notice the lost actor")
+            print(f"the buffer noticed the cut after {time.monotonic() - t_cut + 3:.1f}s")
             assert actor(1).get("episodes", 0) == frozen  # nothing arrives from the cut-off host
             u = learner()["updates"]
             wait_for(lambda: learner()["updates"] > u + 10, 60, "training to go on with the other actor")
-            time.sleep(max(0.0, 12 - 3))
+            time.sleep(2)
             subprocess.run(["ip", "-n", nets.a1, "link", "set", a1_link, "up"], check=True)
             wait_for(lambda: actor(1).get("episodes", 0) > frozen + 3, 120, "actor 1 to reconnect and publish again")
             wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("actors_alive") == 2, 60,
