@@ -214,10 +214,12 @@ def _plot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     return 0
 
 
-def _eval(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentParser):
+    """The checked `--episodes` and the actor weights and env id of `args.checkpoint` (exit 2 if unusable)."""
     from pathlib import Path
 
     from learner.checkpoint import CheckpointError, load_checkpoint
+    from learner.evaluate import weights_from_checkpoint
 
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
@@ -225,10 +227,16 @@ def _eval(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
         payload = load_checkpoint(Path(args.checkpoint))
     except CheckpointError as e:
         parser.error(str(e))
-    from common.envs import EnvSpec
-    from learner.evaluate import evaluate, weights_from_checkpoint
+    return weights_from_checkpoint(payload)
 
-    weights, env_id = weights_from_checkpoint(payload)
+
+def _eval(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    from pathlib import Path
+
+    weights, env_id = _policy_from_checkpoint(args, parser)
+    from common.envs import EnvSpec
+    from learner.evaluate import evaluate
+
     try:
         mean, std, length = evaluate(weights, EnvSpec.of(env_id), args.episodes, args.seed,
                                      Path(args.video) if args.video else None)
@@ -245,22 +253,14 @@ def _demos(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
 
     import numpy as np
 
-    from learner.checkpoint import CheckpointError, load_checkpoint
-
-    if args.episodes < 1:
-        parser.error(f"--episodes must be >= 1, got {args.episodes}")
     out = Path(args.out)
     if out.suffix != ".npz":
         parser.error(f"-o {args.out}: the demonstrations file must end in .npz")
-    try:
-        payload = load_checkpoint(Path(args.checkpoint))
-    except CheckpointError as e:
-        parser.error(str(e))
+    weights, env_id = _policy_from_checkpoint(args, parser)
     from common.demos import save_demos
     from common.envs import EnvSpec
-    from learner.evaluate import record_demos, weights_from_checkpoint
+    from learner.evaluate import record_demos
 
-    weights, env_id = weights_from_checkpoint(payload)
     spec = EnvSpec.of(env_id)
     print(f"recording {args.episodes} episodes of {env_id}, policy version {weights.version} "
           f"({'stochastic' if args.stochastic else 'deterministic'})", flush=True)

@@ -19,6 +19,24 @@ import zenoh
 REPO = Path(__file__).resolve().parent.parent
 
 
+SMALL_RUN_TOML = """env = "InvertedPendulum-v5"
+hidden = [32, 32]
+learning_starts = 300
+batch_size = 32
+eval_episodes = 1
+stats_interval = 0.3
+spi_tolerance = 300
+total_steps = 100000000
+"""
+
+
+def small_run_config(directory: Path) -> Path:
+    """A TOML file of options for a small, endless run, usable by every component (each reads its own options)."""
+    path = directory / "small.toml"
+    path.write_text(SMALL_RUN_TOML)
+    return path
+
+
 def free_port() -> int:
     with socket.socket() as s:
         s.bind(("127.0.0.1", 0))

@@ -19,18 +19,7 @@ import time
 import pytest
 
 from common import protocol as P
-from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, tagged_pids, wait_for
-
-SMALL = """env = "InvertedPendulum-v5"
-hidden = [32, 32]
-learning_starts = 300
-batch_size = 32
-eval_episodes = 1
-stats_interval = 0.3
-spi_tolerance = 300
-total_steps = 100000000
-"""
-
+from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, small_run_config, tagged_pids, wait_for
 
 def _ip(*args: str) -> None:
     subprocess.run(["ip", *args], check=True, capture_output=True, timeout=30)
@@ -99,7 +88,7 @@ def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
     run = "multihost"
     keys = P.Keys(run)
     port = free_port()
-    (tmp_path / "small.toml").write_text(SMALL)
+    small = small_run_config(tmp_path)
     procs = Processes(tmp_path)
 
     def start(name: str, ns: str, *args: str):
@@ -112,11 +101,11 @@ def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
     with Namespaces() as nets:
         try:
             start("router", nets.hub, "router", "--listen", f"tcp/0.0.0.0:{port}")
-            local = ["--run", run, "--config", str(tmp_path / "small.toml"), "--connect", f"tcp/127.0.0.1:{port}"]
+            local = ["--run", run, "--config", str(small), "--connect", f"tcp/127.0.0.1:{port}"]
             start("buffer", nets.hub, "buffer", *local)
             start("learner", nets.hub, "learner", *local, "--runs-dir", str(tmp_path / "runs"))
             for i, ns in ((1, nets.a1), (2, nets.a2)):
-                start(f"actor-{i}", ns, "actor", "--run", run, "--config", str(tmp_path / "small.toml"),
+                start(f"actor-{i}", ns, "actor", "--run", run, "--config", str(small),
                       "--actor-id", str(i), "--zenoh-mode", "client", "--connect", f"tcp/{nets.addr(i, 1)}:{port}")
 
             session = client_when_up(port, host=nets.addr(0, 1))

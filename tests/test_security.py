@@ -19,18 +19,7 @@ import pytest
 import zenoh
 
 from common import protocol as P
-from tests.helpers import REPO, LatestJson, Processes, free_port, tagged_pids, wait_for
-
-SMALL = """env = "InvertedPendulum-v5"
-hidden = [32, 32]
-learning_starts = 300
-batch_size = 32
-eval_episodes = 1
-stats_interval = 0.3
-spi_tolerance = 300
-total_steps = 100000000
-"""
-
+from tests.helpers import REPO, LatestJson, Processes, free_port, small_run_config, tagged_pids, wait_for
 
 def _render(template: str, out, **values: str):
     text = (REPO / "deploy" / "zenoh" / template).read_text()
@@ -70,8 +59,8 @@ def test_tls_acl_lets_the_run_train_and_refuses_a_rogue_actor(tmp_path, certs):
     procs = Processes(tmp_path)
     router_conf = _render("router-tls-acl.json5", tmp_path / "router.json5", CERTS=str(certs), RUN=run)
     procs.start("router", "router", "--listen", f"tls/127.0.0.1:{port}", "--zenoh-config", str(router_conf))
-    (tmp_path / "small.toml").write_text(SMALL)
-    common = ["--run", run, "--zenoh-mode", "client", "--connect", f"tls/127.0.0.1:{port}", "--config", str(tmp_path / "small.toml")]
+    small = small_run_config(tmp_path)
+    common = ["--run", run, "--zenoh-mode", "client", "--connect", f"tls/127.0.0.1:{port}", "--config", str(small)]
     for role in ("buffer", "learner", "actor"):
         conf = _render("client-tls.json5", tmp_path / f"{role}.json5", CERTS=str(certs), ROLE=role)
         extra = ["--runs-dir", str(tmp_path / "runs")] if role != "actor" else []
