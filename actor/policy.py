@@ -40,23 +40,36 @@ class NumpyPolicy:
             if w.shape[1] != b.shape[0] or w.shape[1] != w2.shape[0]:
                 raise ProtocolError("bad_shape", "weights' layer shapes do not chain")
         self.layers = layers
+        # Both heads in one matmul: one BLAS call fewer per step, and the heads' output
+        # is a single array the sampling below works on in place.
+        self.act_dim = act_dim
+        self.head_w = np.ascontiguousarray(np.concatenate([self.mean[0], self.log_std[0]], axis=1))
+        self.head_b = np.concatenate([self.mean[1], self.log_std[1]])
 
     def _heads(self, obs: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        # In place after each matmul: at batch 1-16 the temporaries of `relu(h @ w + b)`
+        # cost as much as the small layers themselves.
         h = np.asarray(obs, dtype=np.float32)
         for w, b in self.layers:
-            h = np.maximum(h @ w + b, 0.0)
-        mean = h @ self.mean[0] + self.mean[1]
-        log_std = np.clip(h @ self.log_std[0] + self.log_std[1], LOG_STD_MIN, LOG_STD_MAX)
+            h = h @ w
+            h += b
+            np.maximum(h, 0.0, out=h)
+        out = h @ self.head_w
+        out += self.head_b
+        mean, log_std = out[..., : self.act_dim], out[..., self.act_dim :]
+        np.clip(log_std, LOG_STD_MIN, LOG_STD_MAX, out=log_std)
         return mean, log_std
 
     def sample(self, obs: np.ndarray, rng: np.random.Generator) -> np.ndarray:
         """Stochastic action tanh(mean + std * noise) in [-1, 1], as the learner's `Actor.sample`."""
         mean, log_std = self._heads(obs)
-        u = mean + np.exp(log_std) * rng.standard_normal(mean.shape, dtype=np.float32)
-        return np.tanh(u).astype(np.float32)
+        u = np.exp(log_std)
+        u *= rng.standard_normal(mean.shape, dtype=np.float32)
+        u += mean
+        return np.tanh(u, out=u)
 
     def deterministic(self, obs: np.ndarray) -> np.ndarray:
-        return np.tanh(self._heads(obs)[0]).astype(np.float32)
+        return np.tanh(self._heads(obs)[0])
 
 
 def initial_weights(obs_dim: int, act_dim: int, hidden: list[int], seed: int) -> Weights:

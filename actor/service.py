@@ -117,8 +117,9 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
             else:
                 obs_batch = np.stack([r.obs[-1] for r in rollouts])
                 acts = policy.sample(obs_batch, rng)
+                env_acts = spec.to_env_action(acts)
                 for j, (env, ro) in enumerate(zip(envs, rollouts)):
-                    obs, reward, terminated, truncated, _ = env.step(spec.to_env_action(acts[j]))
+                    obs, reward, terminated, truncated, _ = env.step(env_acts[j])
                     ro.obs.append(np.asarray(obs, np.float32))
                     ro.actions.append(acts[j])
                     ro.rewards.append(float(reward))

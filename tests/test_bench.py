@@ -46,3 +46,28 @@ def test_update_flops_counts_each_matmul():
     actor, critic = 6, 6
     expected = (actor + 2 * critic) + 2 * 3 * critic + 3 * actor + 2 * 2 * critic
     assert update_flops(1, 1, [1], 1) == expected
+
+
+def test_actor_reference_replays_the_actors_own_actions():
+    """The raw-rate reference steps the env with the untrained actor's actions, not uniform ones."""
+    import numpy as np
+
+    from actor.policy import NumpyPolicy, initial_weights
+    from bench.actor import policy_actions
+    from common.envs import EnvSpec
+
+    spec = EnvSpec.of("Hopper-v5")
+    actions = policy_actions("Hopper-v5", n=200, seed=0)
+    assert len(actions) == 200
+    a = np.stack(actions)
+    assert (a >= spec.action_low).all() and (a <= spec.action_high).all()
+    # the first action is the actor's first sample (same weights, rng and reset seed)
+    import gymnasium as gym
+
+    obs, _ = gym.make("Hopper-v5").reset(seed=0)
+    policy = NumpyPolicy(initial_weights(spec.obs_dim, spec.act_dim, [800, 400], 0), spec.obs_dim, spec.act_dim)
+    first = spec.to_env_action(policy.sample(np.asarray(obs, np.float32), np.random.default_rng(0)))
+    np.testing.assert_allclose(a[0], first, rtol=1e-6)
+    # squashed Gaussians crowd the bounds: more actions near them than uniform's 10% (seeded: 17%)
+    near = np.abs(a) > 0.9 * spec.action_high
+    assert near.mean() > 0.15

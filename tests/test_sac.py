@@ -135,6 +135,13 @@ def test_numpy_policy_matches_torch_actor():
     np.testing.assert_allclose(pol.deterministic(obs), expected, atol=1e-5)
     s = pol.sample(obs, np.random.default_rng(0))
     assert s.shape == (7, 3) and (np.abs(s) <= 1).all()
+    # the stochastic action is tanh(mean + std * noise) with the rng's next normals
+    noise = np.random.default_rng(0).standard_normal((7, 3), dtype=np.float32)
+    with torch.no_grad():
+        mean, log_std = sac.actor(torch.from_numpy(obs))
+    np.testing.assert_allclose(s, np.tanh(mean.numpy() + np.exp(log_std.numpy()) * noise), atol=1e-5)
+    # one observation without a batch axis, as `learner.evaluate.rollout` passes it
+    np.testing.assert_allclose(pol.deterministic(obs[0]), expected[0], atol=1e-5)
 
 
 def test_initial_weights_shape_matches_learner_layout():
