@@ -8,6 +8,8 @@ gradients computed and thrown away, default Adam.
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 import numpy as np
 import torch
 import torch.nn.functional as F
@@ -117,3 +119,51 @@ def random_batch(obs_dim: int, act_dim: int, batch: int, device: torch.device, s
         t(g.normal(size=(batch, obs_dim))), t(g.uniform(-1, 1, (batch, act_dim))), t(g.integers(0, 2, batch)),
         t(g.normal(size=(batch, obs_dim))), t(g.random(batch) < 0.01), t(np.zeros(batch)),
     )
+
+
+_MATMULS = ("mm", "addmm", "bmm", "baddbmm")
+
+
+def record_matmuls(step: Callable[[], None]) -> list[tuple[Any, list[tuple[tuple[int, ...], tuple[int, ...]]]]]:
+    """Every matrix multiply one call of `step` runs (backward included), with its operands' shapes and strides."""
+    from torch.utils._python_dispatch import TorchDispatchMode
+
+    calls: list[tuple[Any, list[tuple[tuple[int, ...], tuple[int, ...]]]]] = []
+
+    class Recorder(TorchDispatchMode):
+        def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+            if func.overloadpacket.__name__ in _MATMULS:
+                calls.append((func, [(tuple(a.shape), tuple(a.stride())) for a in args if isinstance(a, torch.Tensor)]))
+            return func(*args, **(kwargs or {}))
+
+    with Recorder():
+        step()
+    return calls
+
+
+def matmul_only_rate(calls, device: torch.device, seconds: float = 1.0) -> float:
+    """Replays of the recorded matmuls per second: an update's rate if everything else took no time.
+
+    This is the ceiling at the update's own shapes (batch 128 and thin layers run
+    below the peak shape's throughput), with the operands' memory layouts kept.
+    """
+    ops = []
+    for func, operands in calls:
+        tensors = []
+        for shape, stride in operands:
+            # one storage that covers the view, so broadcast (stride-0) operands stay broadcast
+            size = 1 + sum((n - 1) * st for n, st in zip(shape, stride))
+            tensors.append(torch.randn(size, device=device).as_strided(shape, stride))
+        ops.append((func, tensors))
+
+    def replay() -> None:
+        for func, tensors in ops:
+            func(*tensors)
+
+    for _ in range(3):
+        replay()
+    n, t0 = 0, _now(device)
+    while _now(device) - t0 < seconds:
+        replay()
+        n += 1
+    return n / (_now(device) - t0)

@@ -41,7 +41,10 @@ def machine() -> dict[str, Any]:
     import torch
 
     info = {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
-            "torch": torch.__version__, "torch_threads": torch.get_num_threads()}
+            "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
+            # idle OpenMP threads sleeping (PASSIVE, silcr's default) or spinning changes CPU
+            # update rates by about 30% either way, depending on what else runs (docs/performance.md)
+            "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")}
     if torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name()
     return info
@@ -63,4 +66,4 @@ def print_table(title: str, columns: list[str], rows: list[list[Any]]) -> None:
         t.add_column(c, justify="right")
     for row in rows:
         t.add_row(*[f"{v:,.2f}" if isinstance(v, float) else str(v) for v in row])
-    Console().print(t)
+    Console(width=max(Console().width, 120)).print(t)
