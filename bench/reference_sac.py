@@ -77,6 +77,9 @@ def update_flops(obs_dim: int, act_dim: int, hidden: list[int], batch: int) -> f
     Counts what the update must do: target actor and 2 target critics forward on s';
     2 critics forward and backward; actor forward and backward plus 2 critics forward
     and backward to their inputs only (no critic parameter gradients are needed).
+    No network needs the gradient with respect to its first layer's input except the
+    critics in the actor step (that is d Q / d a), so those products are not counted.
+    A test checks this against the matmuls autograd really runs.
     """
     def fwd(sizes: list[int]) -> float:
         return sum(2.0 * batch * a * b for a, b in zip(sizes, sizes[1:]))
@@ -84,8 +87,10 @@ def update_flops(obs_dim: int, act_dim: int, hidden: list[int], batch: int) -> f
     actor = fwd([obs_dim, *hidden]) + 2 * fwd([hidden[-1], act_dim])
     critic = fwd([obs_dim + act_dim, *hidden, 1])
     target = actor + 2 * critic
-    critic_step = 2 * (critic + 2 * critic)
-    actor_step = (actor + 2 * actor) + 2 * (critic + critic)
+    actor_in = fwd([obs_dim, hidden[0]])
+    critic_in = fwd([obs_dim + act_dim, hidden[0]])
+    critic_step = 2 * (critic + 2 * critic - critic_in)
+    actor_step = (actor + 2 * actor - actor_in) + 2 * (critic + critic)
     return target + critic_step + actor_step
 
 

@@ -43,8 +43,9 @@ def test_optimised_update_equals_the_plain_reference(rewards_scale):
 def test_update_flops_counts_each_matmul():
     # obs 1, act 1, one hidden layer of 1, batch 1: every linear layer costs 2 FLOPs forward.
     # actor: trunk 1x1 + mean + log_std = 3 layers -> 6; critic: (2x1) + (1x1) = 4 + 2 = 6.
+    # No first-layer input gradient in the critic step (2 critics x 4) nor the actor's (2).
     actor, critic = 6, 6
-    expected = (actor + 2 * critic) + 2 * 3 * critic + 3 * actor + 2 * 2 * critic
+    expected = (actor + 2 * critic) + 2 * (3 * critic - 4) + (3 * actor - 2) + 2 * 2 * critic
     assert update_flops(1, 1, [1], 1) == expected
 
 
@@ -71,3 +72,18 @@ def test_actor_reference_replays_the_actors_own_actions():
     # squashed Gaussians crowd the bounds: more actions near them than uniform's 10% (seeded: 17%)
     near = np.abs(a) > 0.9 * spec.action_high
     assert near.mean() > 0.15
+
+
+def test_recorded_matmuls_are_the_counted_flops():
+    """The own-shape ceiling replays exactly the matmuls `update_flops` counts, and replays run."""
+    from bench.reference_sac import matmul_only_rate, record_matmuls
+
+    sac = Sac(5, 2, [16, 8], SacHyper(), torch.device("cpu"))
+    batch = random_batch(5, 2, 32, torch.device("cpu"))
+    calls = record_matmuls(lambda: sac.update(*batch))
+    flops = 0
+    for _, operands in calls:
+        a, b = operands[-2][0], operands[-1][0]
+        flops += 2 * a[-2] * a[-1] * b[-1] * (a[0] if len(a) == 3 else 1)
+    assert flops == update_flops(5, 2, [16, 8], 32)
+    assert matmul_only_rate(calls, torch.device("cpu"), 0.05) > 0
