@@ -15,19 +15,30 @@ from .expert_heap import ExpertHeap
 from .online_fifo import OnlineFifo
 
 
-def _gather(eps: list[Episode], ts: np.ndarray, out: dict[str, np.ndarray], rows: slice) -> None:
-    obs, nxt, act = out["obs"][rows], out["next_obs"][rows], out["actions"][rows]
-    rew, term, trunc, ver = out["rewards"][rows], out["terminated"][rows], out["truncated"][rows], out["policy_version"][rows]
+def _gather(eps: list[Episode], ts: np.ndarray, out: dict[str, np.ndarray], rows: slice, rewards: bool) -> None:
+    """Copy the sampled transitions into `out[...][rows]`.
+
+    Only the array rows need a Python loop (each lives in its own episode's
+    arrays); the per-episode scalars are gathered once per row with `fromiter`
+    and the flags computed vectorised. Rewards are skipped when the caller
+    overwrites them (constant rewards).
+    """
+    n = len(eps)
+    obs, nxt, act, rew = out["obs"][rows], out["next_obs"][rows], out["actions"][rows], out["rewards"][rows]
     for i, (ep, t) in enumerate(zip(eps, ts)):
-        obs[i] = ep.obs[t]
-        nxt[i] = ep.obs[t + 1]
+        o = ep.obs
+        obs[i] = o[t]
+        nxt[i] = o[t + 1]
         act[i] = ep.actions[t]
-        rew[i] = ep.rewards[t]
-        last = t == ep.length - 1
-        term[i] = last and ep.terminated
-        # gymnasium may report both on the same step; termination wins (no bootstrap).
-        trunc[i] = last and ep.truncated and not ep.terminated
-        ver[i] = ep.policy_version
+    if rewards:
+        rew[:] = [ep.rewards[t] for ep, t in zip(eps, ts)]
+    last = ts == np.fromiter((ep.length for ep in eps), np.int64, n) - 1
+    terminated = np.fromiter((ep.terminated for ep in eps), bool, n)
+    truncated = np.fromiter((ep.truncated for ep in eps), bool, n)
+    out["terminated"][rows] = last & terminated
+    # gymnasium may report both on the same step; termination wins (no bootstrap).
+    out["truncated"][rows] = last & truncated & ~terminated
+    out["policy_version"][rows] = np.fromiter((ep.policy_version for ep in eps), np.int64, n)
 
 
 def compose_batches(
@@ -59,10 +70,10 @@ def compose_batches(
     for b in range(batches):
         base = b * batch_size
         eps, ts = fifo.sample_locations(n_online, rng)
-        _gather(eps, ts, out, slice(base, base + n_online))
+        _gather(eps, ts, out, slice(base, base + n_online), not constant_rewards)
         if n_expert:
             eps, ts = heap.sample_locations(n_expert, rng)  # type: ignore[union-attr]
-            _gather(eps, ts, out, slice(base + n_online, base + batch_size))
+            _gather(eps, ts, out, slice(base + n_online, base + batch_size), not constant_rewards)
         if constant_rewards:
             out["rewards"][base : base + n_online] = 0.0
             out["rewards"][base + n_online : base + batch_size] = 1.0

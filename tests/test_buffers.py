@@ -155,6 +155,17 @@ def test_batch_terminal_flags_only_on_last_step():
     assert out["terminated"].any() and out["truncated"].any()
 
 
+def test_batch_flags_when_gymnasium_reports_both_and_policy_versions():
+    fifo = OnlineFifo(1000)
+    fifo.add(make_episode(3, ret=1.0, seq=0, start=0, terminated=True, truncated=True))
+    out = compose_batches(fifo, None, 1, 64, np.random.default_rng(0), False, 4, 1)
+    last = out["obs"][:, 0] == 2
+    assert last.any() and not last.all()
+    np.testing.assert_array_equal(out["terminated"].astype(bool), last)  # termination wins
+    assert not out["truncated"].any()
+    np.testing.assert_array_equal(out["policy_version"], fifo.episodes()[0].policy_version)
+
+
 def test_sac_batches_use_env_rewards_from_online_only():
     fifo = OnlineFifo(1000)
     for i in range(5):
