@@ -66,4 +66,4 @@ def print_table(title: str, columns: list[str], rows: list[list[Any]]) -> None:
         t.add_column(c, justify="right")
     for row in rows:
         t.add_row(*[f"{v:,.2f}" if isinstance(v, float) else str(v) for v in row])
-    Console(width=max(Console().width, 120)).print(t)
+    Console(width=max(Console().width, 150)).print(t)
