@@ -11,16 +11,25 @@ transition-level and can keep partial episodes):
    nothing is evicted.
 
 So ties never displace a stored episode, and a rejection never loses data.
+
+Admitted episodes are copied into this table's own rows (`storage.RowStorage`),
+appended at the end; rows freed by evictions are reclaimed by compacting when the
+end is reached. An expert episode that is also still in D_O is therefore stored
+twice, at most M transitions (5% of the paper's Humanoid buffers), so that both
+tables sample with one vectorised gather (docs/performance.md).
 """
 
 from __future__ import annotations
 
+import dataclasses
 import heapq
 import itertools
 
 import numpy as np
 
 from common.protocol import Episode
+
+from .storage import EpisodeIndex, RowStorage, detach
 
 
 class ExpertHeap:
@@ -32,7 +41,10 @@ class ExpertHeap:
         self._heap: list[tuple[float, int, Episode]] = []
         self._order = itertools.count()
         self._transitions = 0
-        self._cum: np.ndarray | None = None
+        self.storage = RowStorage(capacity + capacity // 8 + 2)
+        self.index = EpisodeIndex()
+        self._where: dict[int, tuple[int, int, Episode]] = {}  # id(stored episode) -> (slot, first row, it)
+        self._end = 0  # rows [0, _end) are in use or freed by evictions
         self.admitted = 0
         self.rejected = 0
         self.evicted = 0
@@ -72,11 +84,54 @@ class ExpertHeap:
                 return False
             self._transitions -= freed
             self.evicted += len(popped)
-        heapq.heappush(self._heap, (ep.episode_return, next(self._order), ep))
+            for _, _, old in popped:
+                self._release(old)
+        stored = self._store(ep)
+        heapq.heappush(self._heap, (ep.episode_return, next(self._order), stored))
         self._transitions += ep.length
-        self._cum = None
         self.admitted += 1
         return True
+
+    def _store(self, ep: Episode) -> Episode:
+        """A copy of `ep` in this table's rows (the caller's episode is left as it is)."""
+        rows = ep.length + 1
+        if self._end + rows > self.storage.rows:
+            self._compact()
+            if self._end + rows > self.storage.rows:
+                self.storage.grow(self._end + rows + self.capacity // 8)
+                with self.storage.lock:  # the stored episodes still view the old arrays
+                    for _, row, stored in self._where.values():
+                        self.storage.view(row, stored)
+        stored = dataclasses.replace(ep)
+        with self.storage.lock:
+            self.storage.write(self._end, stored)
+            self.storage.view(self._end, stored)
+        self._where[id(stored)] = (self.index.add(self._end, stored), self._end, stored)
+        self._end += rows
+        return stored
+
+    def _release(self, ep: Episode) -> None:
+        slot, _, _ = self._where.pop(id(ep))
+        self.index.remove(slot)
+        with self.storage.lock:
+            detach(ep)  # its rows will be reused by the next compaction
+
+    def _compact(self) -> None:
+        """Move the stored episodes to the front, in row order, so the free rows are at the end."""
+        end = 0
+        with self.storage.lock:
+            for key, (slot, row, ep) in sorted(self._where.items(), key=lambda kv: kv[1][1]):
+                n = ep.length + 1
+                if row != end:  # moving down in row order: numpy copies overlapping slices safely
+                    st = self.storage
+                    st.obs[end : end + n] = st.obs[row : row + n]
+                    st.actions[end : end + n] = st.actions[row : row + n]
+                    st.rewards[end : end + n] = st.rewards[row : row + n]
+                    st.view(end, ep)
+                    self.index.move(slot, end)
+                    self._where[key] = (slot, end, ep)
+                end += n
+        self._end = end
 
     def episodes(self) -> list[Episode]:
         return [e[2] for e in self._heap]
@@ -92,23 +147,18 @@ class ExpertHeap:
         total = sum(e[2].length for e in entries)
         if total > self.capacity:
             raise ValueError(f"checkpointed D_E holds {total} transitions, more than M = {self.capacity}")
-        self._heap = list(entries)
+        self._heap = [(ret, order, self._store(ep)) for ret, order, ep in entries]
         heapq.heapify(self._heap)
         self._order = itertools.count(max((e[1] for e in entries), default=-1) + 1)
         self._transitions = total
-        self._cum = None
         self.admitted, self.rejected, self.evicted = admitted, rejected, evicted
 
     def returns(self) -> list[float]:
         return [e[0] for e in self._heap]
 
-    def sample_locations(self, n: int, rng: np.random.Generator) -> tuple[list[Episode], np.ndarray]:
-        """Pick `n` transitions uniformly over all stored transitions (with replacement)."""
+    def gather(self, n: int, rng: np.random.Generator, out: dict[str, np.ndarray], rows: slice | np.ndarray,
+               rewards: bool) -> None:
+        """Draw `n` transitions uniformly over all stored transitions (with replacement) into `out[...][rows]`."""
         if not self._heap:
             raise LookupError("expert buffer is empty")
-        if self._cum is None:
-            self._cum = np.cumsum([e[2].length for e in self._heap])
-        g = rng.integers(0, self._transitions, size=n)
-        idx = np.searchsorted(self._cum, g, side="right")
-        t = g - np.where(idx > 0, self._cum[idx - 1], 0)
-        return [self._heap[i][2] for i in idx], t
+        self.index.gather(self.storage, n, rng, out, rows, rewards)

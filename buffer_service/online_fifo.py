@@ -1,8 +1,11 @@
 """D_O: the online FIFO of whole episodes, sampled uniformly by transition.
 
-Episodes are stored as the `Episode` objects the codec decoded (each array once;
-next observations are row t+1 of `obs`), so an episode that is also in the
-expert heap costs no extra memory: both tables hold a reference.
+Episodes are copied into one ring of rows (`storage.RowStorage`) as they arrive,
+so a batch is gathered with one fancy index per field. The `Episode` objects this
+table keeps (for checkpoints and `episodes()`) view their rows; when an episode is
+evicted its rows are about to be reused, so it first gets its own copy
+(`storage.detach`): whoever still holds it, a checkpoint being written for
+instance, keeps valid data.
 """
 
 from __future__ import annotations
@@ -13,6 +16,8 @@ import numpy as np
 
 from common.protocol import Episode
 
+from .storage import EpisodeIndex, RowStorage, detach
+
 
 class OnlineFifo:
     """First-in first-out store of at most `capacity` transitions.
@@ -20,50 +25,75 @@ class OnlineFifo:
     Oldest whole episodes are evicted to make room, so no partial episode is
     ever kept (the official code's deque of transitions can hold partial ones;
     the difference is at most one episode out of 1e6 transitions).
+
+    The ring has `capacity + capacity // 32 + 2 * (max_episode_steps + 1)` rows:
+    each episode needs one row more than its transitions, and an episode that would
+    cross the ring's end starts again at row 0. If episodes average fewer than
+    about 32 steps the rows run out first, and the oldest episodes are evicted
+    before `capacity` transitions are stored (counted in `evicted_for_rows`).
+    `max_episode_steps` is the longest episode to expect; the service passes the
+    env's limit. Without it the ring reserves room for episodes as long as
+    `capacity`, which can triple its rows.
     """
 
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, max_episode_steps: int | None = None) -> None:
         if capacity <= 0:
             raise ValueError(f"online capacity must be positive, got {capacity}")
         self.capacity = capacity
-        self._episodes: deque[Episode] = deque()
-        # Global index of each stored episode's first transition; transitions are
-        # numbered by insertion, so the live range is [starts[0], _end).
-        self._starts: deque[int] = deque()
-        self._end = 0
-        self._starts_array: np.ndarray | None = None
+        longest = min(max_episode_steps or capacity, capacity)
+        self.storage = RowStorage(capacity + capacity // 32 + 2 * (longest + 1))
+        self.index = EpisodeIndex()
+        self._episodes: deque[tuple[int, int, Episode]] = deque()  # (slot, first row, episode), oldest first
+        self._head = 0  # next free row
         self.evicted_episodes = 0
+        self.evicted_for_rows = 0
 
     def __len__(self) -> int:
-        return self._end - self._starts[0] if self._starts else 0
+        return self.index.transitions
 
     @property
     def num_episodes(self) -> int:
         return len(self._episodes)
 
+    def _place(self, rows: int) -> int | None:
+        """First row of `rows` free consecutive rows at the head, or None if the oldest episode is in the way."""
+        if not self._episodes:
+            return 0
+        tail = self._episodes[0][1]
+        if self._head > tail:  # live rows are [tail, head): free are [head, end) and [0, tail)
+            if self._head + rows <= self.storage.rows:
+                return self._head
+            return 0 if rows <= tail else None
+        return self._head if self._head + rows <= tail else None  # wrapped: free are [head, tail)
+
+    def _evict_oldest(self) -> None:
+        slot, _, old = self._episodes.popleft()
+        self.index.remove(slot)
+        with self.storage.lock:
+            detach(old)
+        self.evicted_episodes += 1
+
     def add(self, ep: Episode) -> None:
+        """Store `ep`; its arrays become views of the ring (no other copy is kept)."""
         if ep.length > self.capacity:
             raise ValueError(f"episode of {ep.length} steps does not fit an online buffer of {self.capacity}")
         while self._episodes and len(self) + ep.length > self.capacity:
-            self._episodes.popleft()
-            self._starts.popleft()
-            self.evicted_episodes += 1
-        self._episodes.append(ep)
-        self._starts.append(self._end)
-        self._end += ep.length
-        self._starts_array = None
+            self._evict_oldest()
+        while (row := self._place(ep.length + 1)) is None:
+            self._evict_oldest()
+            self.evicted_for_rows += 1
+        with self.storage.lock:
+            self.storage.write(row, ep)
+            self.storage.view(row, ep)
+        self._episodes.append((self.index.add(row, ep), row, ep))
+        self._head = row + ep.length + 1
 
     def episodes(self) -> list[Episode]:
-        return list(self._episodes)
+        return [e[2] for e in self._episodes]
 
-    def sample_locations(self, n: int, rng: np.random.Generator) -> tuple[list[Episode], np.ndarray]:
-        """Pick `n` transitions uniformly (with replacement): their episodes and time steps."""
+    def gather(self, n: int, rng: np.random.Generator, out: dict[str, np.ndarray], rows: slice | np.ndarray,
+               rewards: bool) -> None:
+        """Draw `n` transitions uniformly (with replacement) into `out[...][rows]`."""
         if not self._episodes:
             raise LookupError("online buffer is empty")
-        if self._starts_array is None:
-            self._starts_array = np.fromiter(self._starts, dtype=np.int64, count=len(self._starts))
-        starts = self._starts_array
-        g = rng.integers(starts[0], self._end, size=n)
-        idx = np.searchsorted(starts, g, side="right") - 1
-        eps = [self._episodes[i] for i in idx]
-        return eps, g - starts[idx]
+        self.index.gather(self.storage, n, rng, out, rows, rewards)

@@ -44,7 +44,7 @@ class ReplayState:
         self.cfg = cfg
         self.spec = spec
         self.constant_rewards = cfg.constant_rewards
-        self.fifo = OnlineFifo(cfg.online_capacity)
+        self.fifo = OnlineFifo(cfg.online_capacity, spec.max_episode_steps)
         self.heap: ExpertHeap | None = None
         if cfg.algo == "silcr":
             self.heap = ExpertHeap(cfg.expert_capacity)
@@ -143,6 +143,8 @@ class ReplayState:
             "online_transitions": len(self.fifo),
             "online_episodes": self.fifo.num_episodes,
             "online_capacity": self.fifo.capacity,
+            "online_evicted": self.fifo.evicted_episodes,
+            "online_evicted_for_rows": self.fifo.evicted_for_rows,
             "expert_transitions": len(heap) if heap is not None else 0,
             "expert_capacity": heap.capacity if heap is not None else 0,
             "expert_episodes": heap.num_episodes if heap is not None else 0,

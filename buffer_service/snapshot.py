@@ -7,7 +7,8 @@ a crash while checkpointing leaves the previous checkpoint usable:
    counters, the limiter state, the duplicate-detection table, and the two tables
    as lists of episode indices (D_E entries also carry return and admission order);
 2. the episodes, each once as an `EpisodeCodec` message, even when both D_O and
-   D_E refer to it (Reverb-style: items stored once, referenced from two tables).
+   D_E hold it (in memory each table has its own copy, for vectorised sampling;
+   in the file it is stored once and referenced from both tables).
 
 Loading re-validates every episode against the run's env with the same codec
 that guards the network, so a corrupt or foreign file is refused with one line.
@@ -39,25 +40,37 @@ class SnapshotError(RuntimeError):
 
 @dataclass
 class Snapshot:
-    """What one checkpoint holds, taken in the service thread (cheap: references, not copies)."""
+    """What one checkpoint holds, taken in the service thread (cheap: references, not copies).
+
+    The episodes view rows that the service keeps rewriting; `locks` are the row
+    storages' locks, held while each episode is encoded (see `storage.RowStorage`).
+    """
 
     header: dict[str, Any]
     episodes: list[P.Episode]
+    locks: tuple[threading.Lock, ...] = ()
 
     @property
     def transitions(self) -> int:
         return int(self.header["counters"]["transitions_received"])
 
 
+def _identity(ep: P.Episode) -> tuple:
+    # D_O and D_E keep separate copies of an episode in both; these fields name it
+    # (the service never stores two episodes with the same sender and seq).
+    return ep.actor_id, ep.incarnation, ep.seq, ep.length, ep.episode_return
+
+
 def take(state: "ReplayState") -> Snapshot:
     episodes: list[P.Episode] = []
-    index: dict[int, int] = {}
+    index: dict[tuple, int] = {}
 
     def ref(ep: P.Episode) -> int:
-        if id(ep) not in index:
-            index[id(ep)] = len(episodes)
+        key = _identity(ep)
+        if key not in index:
+            index[key] = len(episodes)
             episodes.append(ep)
-        return index[id(ep)]
+        return index[key]
 
     fifo_ids = [ref(ep) for ep in state.fifo.episodes()]
     heap = state.heap if state.cfg.algo == "silcr" else None  # SQIL's D_E is reloaded from --demos
@@ -85,7 +98,8 @@ def take(state: "ReplayState") -> Snapshot:
         "heap": heap_entries,
         "n_episodes": len(episodes),
     }
-    return Snapshot(header, episodes)
+    locks = (state.fifo.storage.lock,) + ((heap.storage.lock,) if heap else ())
+    return Snapshot(header, episodes, locks)
 
 
 def write(path: Path, snap: Snapshot) -> None:
@@ -93,7 +107,14 @@ def write(path: Path, snap: Snapshot) -> None:
         packer = msgpack.Packer(use_bin_type=True)
         f.write(packer.pack(snap.header))
         for ep in snap.episodes:
-            f.write(packer.pack(P.EpisodeCodec.encode(ep)))
+            for lock in snap.locks:  # always in this order; the service holds at most one
+                lock.acquire()
+            try:
+                payload = P.EpisodeCodec.encode(ep)
+            finally:
+                for lock in snap.locks:
+                    lock.release()
+            f.write(packer.pack(payload))
 
     write_atomic(path, body)
 

@@ -4,11 +4,25 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 from buffer_service.batches import compose_batches
 from buffer_service.expert_heap import ExpertHeap
 from buffer_service.online_fifo import OnlineFifo
 from tests.conftest import make_episode
+
+
+def _draw(table, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
+    """(seq, t) of `n` drawn transitions, for episodes made with `start=100 * seq`."""
+    out = {"obs": np.empty((n, 4), np.float32), "next_obs": np.empty((n, 4), np.float32),
+           "actions": np.empty((n, 1), np.float32), "rewards": np.empty(n, np.float32),
+           "terminated": np.empty(n, np.uint8), "truncated": np.empty(n, np.uint8),
+           "policy_version": np.empty(n, np.int64)}
+    table.gather(n, rng, out, slice(0, n), True)
+    np.testing.assert_array_equal(out["next_obs"], out["obs"] + 1)
+    v = out["obs"][:, 0].astype(np.int64)
+    return v // 100, v % 100
 
 
 # --- OnlineFifo ---------------------------------------------------------------
@@ -29,8 +43,7 @@ def test_fifo_samples_only_live_transitions_uniformly():
     for i in range(5):
         fifo.add(make_episode(10, seq=i, start=100 * i))
     rng = np.random.default_rng(0)
-    eps, ts = fifo.sample_locations(30_000, rng)
-    seqs = np.array([e.seq for e in eps])
+    seqs, ts = _draw(fifo, 30_000, rng)
     assert set(seqs) == {2, 3, 4}
     assert ((ts >= 0) & (ts < 10)).all()
     # uniform over the 30 live transitions: each (episode, t) about 1/30
@@ -41,9 +54,9 @@ def test_fifo_samples_only_live_transitions_uniformly():
 def test_fifo_uniform_by_transition_not_by_episode():
     fifo = OnlineFifo(capacity=1000)
     fifo.add(make_episode(90, seq=0))
-    fifo.add(make_episode(10, seq=1))
-    eps, _ = fifo.sample_locations(20_000, np.random.default_rng(1))
-    share_long = np.mean([e.seq == 0 for e in eps])
+    fifo.add(make_episode(10, seq=1, start=100))
+    seqs, _ = _draw(fifo, 20_000, np.random.default_rng(1))
+    share_long = np.mean(seqs == 0)
     assert 0.88 < share_long < 0.92
 
 
@@ -112,8 +125,8 @@ def test_heap_sampling_covers_stored_transitions():
     heap = ExpertHeap(capacity=30)
     for i, r in enumerate([1.0, 2.0, 3.0]):
         heap.offer(make_episode(10, ret=r, seq=i, start=100 * i))
-    eps, ts = heap.sample_locations(6000, np.random.default_rng(0))
-    assert {e.seq for e in eps} == {0, 1, 2}
+    seqs, ts = _draw(heap, 6000, np.random.default_rng(0))
+    assert set(seqs) == {0, 1, 2}
     assert ((ts >= 0) & (ts < 10)).all()
 
 
@@ -198,3 +211,54 @@ def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
     state.ingest(P.EpisodeCodec.encode(restarted))
     assert state.episodes_received == 2 and len(state.fifo) == 10
     assert state.rejections == {"duplicate": 1}
+
+
+# --- contiguous storage: ring reuse, compaction, copies for holders ------------------
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.integers(1, 30), min_size=1, max_size=80), st.integers(30, 120))
+def test_fifo_ring_keeps_the_newest_episodes_intact(lengths, capacity):
+    fifo = OnlineFifo(capacity=capacity, max_episode_steps=30)
+    added = []
+    for i, n in enumerate(lengths):
+        ep = make_episode(n, seq=i, start=100 * i)
+        added.append(ep)
+        fifo.add(ep)
+        stored = fifo.episodes()
+        # a suffix of what arrived, within capacity, each episode's rows intact
+        assert [e.seq for e in stored] == list(range(i + 1 - len(stored), i + 1))
+        assert len(fifo) == sum(e.length for e in stored) <= capacity
+        if fifo.evicted_for_rows == 0:  # then exactly the capacity rule decided
+            assert len(stored) == len(added) or len(fifo) + added[-len(stored) - 1].length > capacity
+    for e in added:  # stored or evicted (and copied out before its rows were reused)
+        np.testing.assert_array_equal(e.obs[:, 0], 100 * e.seq + np.arange(e.length + 1))
+    seqs, ts = _draw(fifo, 2000, np.random.default_rng(0))
+    live = {e.seq: e.length for e in fifo.episodes()}
+    assert set(seqs) <= set(live) and all(t < live[s] for s, t in zip(seqs, ts))
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.tuples(st.integers(1, 12), st.integers(-5, 5)), min_size=1, max_size=80))
+def test_heap_rows_survive_eviction_compaction_and_growth(offers):
+    heap = ExpertHeap(capacity=30)
+    held = []
+    for i, (n, ret) in enumerate(offers):
+        if heap.offer(make_episode(n, ret=float(ret), seq=i, start=100 * i)):
+            held.append(heap.entries())
+    for entries in held:  # every episode ever stored, evicted ones included, kept its data
+        for _, _, e in entries:
+            np.testing.assert_array_equal(e.obs[:, 0], 100 * e.seq + np.arange(e.length + 1))
+    assert len(heap) == sum(e.length for e in heap.episodes()) <= 30
+    seqs, ts = _draw(heap, 2000, np.random.default_rng(0))
+    live = {e.seq: e.length for e in heap.episodes()}
+    assert set(seqs) == set(live) and all(t < live[s] for s, t in zip(seqs, ts))
+
+
+def test_fifo_with_short_episodes_runs_out_of_rows_before_transitions_and_counts_it():
+    fifo = OnlineFifo(capacity=64, max_episode_steps=1)
+    for i in range(200):
+        fifo.add(make_episode(1, seq=i, start=100 * i))
+    # 1-step episodes need 2 rows each: 64 + 2 + 4 rows hold 35 of them, not 64
+    assert fifo.evicted_for_rows > 0 and len(fifo) < 64
+    assert fifo.evicted_episodes == 200 - fifo.num_episodes

@@ -14,7 +14,8 @@ from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait
 RUN = "itest-buffer"
 KEYS = P.Keys(RUN)
 REQUIRED_STATS = {
-    "online_transitions", "online_capacity", "expert_transitions", "expert_capacity", "expert_episodes",
+    "online_transitions", "online_capacity", "online_evicted", "online_evicted_for_rows", "expert_transitions",
+    "expert_capacity", "expert_episodes",
     "expert_min_return", "expert_max_return", "episodes_received", "transitions_received", "episodes_rejected",
     "batches_served", "samples_per_insert",
 }
