@@ -31,7 +31,7 @@ class Critic(nn.Module):
 
 class PlainSac:
     def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], device: torch.device, tau: float = 0.05) -> None:
-        self.actor = Actor(obs_dim, act_dim, hidden).to(device)
+        self.actor = Actor(obs_dim, act_dim, hidden, inplace=False).to(device)
         self.q1, self.q2 = Critic(obs_dim, act_dim, hidden).to(device), Critic(obs_dim, act_dim, hidden).to(device)
         self.q1_t, self.q2_t = Critic(obs_dim, act_dim, hidden).to(device), Critic(obs_dim, act_dim, hidden).to(device)
         self.q1_t.load_state_dict(self.q1.state_dict())

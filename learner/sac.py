@@ -35,20 +35,21 @@ LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 LOG2 = float(np.log(2.0))
 
 
-def mlp(sizes: list[int]) -> nn.Sequential:
+def mlp(sizes: list[int], inplace: bool = False) -> nn.Sequential:
+    """Linear + ReLU layers; `inplace` ReLU overwrites the Linear's fresh output (one allocation fewer)."""
     layers: list[nn.Module] = []
     for i in range(len(sizes) - 1):
         layers.append(nn.Linear(sizes[i], sizes[i + 1]))
-        layers.append(nn.ReLU())
+        layers.append(nn.ReLU(inplace=inplace))
     return nn.Sequential(*layers)
 
 
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy; outputs actions in [-1, 1] (rescaled to the env by the caller)."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int]) -> None:
+    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], inplace: bool = True) -> None:
         super().__init__()
-        self.trunk = mlp([obs_dim, *hidden])
+        self.trunk = mlp([obs_dim, *hidden], inplace)
         self.mean = nn.Linear(hidden[-1], act_dim)
         self.log_std = nn.Linear(hidden[-1], act_dim)
 
@@ -99,7 +100,7 @@ class TwinCritic(nn.Module):
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             h = torch.baddbmm(b, h, w)
             if i < last:
-                h = torch.relu(h)
+                h = torch.relu_(h)  # baddbmm's backward does not need its output
         q = h.squeeze(-1)
         return q[0], q[1]
 
