@@ -10,6 +10,8 @@ import os
 #   so each process gets one BLAS thread (actors are single-threaded by design);
 # * torch's OpenMP pool: an 800-400 SAC update on 2 threads ran at 1.4 updates/s
 #   instead of 35, so idle OpenMP threads sleep instead of spinning.
-# Both are defaults: a value already in the environment wins.
+# Both are defaults: a value already in the environment wins. Every component package
+# imports this module first, so library use (`import learner.sac`) gets them too, unless
+# numpy or torch was imported before it.
 os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
 os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")

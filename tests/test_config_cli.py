@@ -95,3 +95,16 @@ def test_shipped_configs_load(name):
 
     cfg = _resolve(["--config", str(REPO / "configs" / name)])
     assert cfg.algo == "silcr"
+
+
+@pytest.mark.parametrize("module", ["learner.sac", "actor.policy", "buffer_service.batches", "bench.reference_sac"])
+def test_thread_pool_defaults_apply_to_library_use(module):
+    """Importing any component as a library sets the defaults before numpy or torch loads."""
+    import os
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "OPENBLAS_NUM_THREADS")}
+    code = f"import {module}, os; print(os.environ.get('OMP_WAIT_POLICY'), os.environ.get('OPENBLAS_NUM_THREADS'))"
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()
+    assert out == ["PASSIVE", "1"]
