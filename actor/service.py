@@ -88,7 +88,8 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
             log.info("no learner answered; acting with a local random policy until weights arrive")
             weights = initial_weights(spec.obs_dim, spec.act_dim, cfg.hidden, seed)
         policy = NumpyPolicy(weights, spec.obs_dim, spec.act_dim)
-        log.info("actor %d on %s with %d env(s), policy version %d", cfg.actor_id, cfg.env, len(envs), policy.version)
+        log.info("actor %d on %s with %d env(s), seed %d, policy version %d", cfg.actor_id, cfg.env, len(envs), seed,
+                 policy.version)
 
         rollouts = []
         for j, env in enumerate(envs):

@@ -33,6 +33,8 @@ from deploy.monitor import StatsSnapshot
 log = logging.getLogger("train")
 
 STOP_GRACE_S = 20.0
+# Added to a restarted actor's seed: far from base + actor id for any realistic actor count.
+RESTART_SEED_STRIDE = 1_000_003
 
 
 def component_main(role: str, cfg_dict: dict[str, Any], log_path: str) -> None:
@@ -246,6 +248,8 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     role, acfg = run.specs[name]
                     if role in ("buffer", "learner"):
                         acfg = Config(**acfg.to_dict() | {"resume": True})
+                    else:  # a new seed, or the restarted actor replays its predecessor's episodes
+                        acfg = Config(**acfg.to_dict() | {"seed": acfg.seed + RESTART_SEED_STRIDE})
                     run.start(role, acfg, name)
                     continue
                 if p.exitcode == 0 and name != "learner":

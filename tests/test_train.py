@@ -219,6 +219,9 @@ def test_a_killed_actor_is_restarted_and_the_run_finishes(tmp_path):
     finally:
         procs.stop_all()
     assert "actor-0 exited with code -9; restarting it (1/5)" in procs.log("train")
+    # the restarted actor explores afresh: a new seed, not its predecessor's
+    seeds = re.findall(r"actor 0 on \S+ with \d+ env\(s\), seed (\d+)", (tmp_path / "runs" / run / "logs" / "actor-0.log").read_text())
+    assert len(seeds) == 2 and seeds[0] != seeds[1], seeds
     assert tagged_pids(procs.tag) == []
 
 
