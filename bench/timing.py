@@ -43,7 +43,7 @@ def machine() -> dict[str, Any]:
     info = {"platform": platform.platform(), "python": platform.python_version(), "cpus": os.cpu_count(),
             "torch": torch.__version__, "torch_threads": torch.get_num_threads(),
             # idle OpenMP threads sleeping (PASSIVE, silcr's default) or spinning changes CPU
-            # update rates by about 30% either way, depending on what else runs (docs/performance.md)
+            # update rates by up to 30%, either way depending on what else runs (docs/performance.md)
             "omp_wait_policy": os.environ.get("OMP_WAIT_POLICY")}
     if torch.cuda.is_available():
         info["gpu"] = torch.cuda.get_device_name()
