@@ -131,6 +131,14 @@ def _adam(params: list[torch.Tensor], lr: float) -> torch.optim.Adam:
         return torch.optim.Adam(params, lr=lr)
 
 
+def as_floats(stats: dict[str, torch.Tensor]) -> dict[str, float]:
+    """`Sac.update`'s statistics as Python floats (one device synchronisation)."""
+    if not stats:
+        return {}
+    values = torch.stack(list(stats.values())).tolist()
+    return dict(zip(stats, values))
+
+
 class Sac:
     """Networks, optimizers and the update. `update(batch)` is one gradient step on everything."""
 
@@ -159,8 +167,12 @@ class Sac:
     def alpha(self) -> float:
         return float(self.log_alpha.detach().exp())
 
-    def update(self, obs, actions, rewards, next_obs, terminated, truncated) -> dict[str, float]:
-        """One SAC step on a batch of tensors already on `self.device` (rewards per eq. 3)."""
+    def update(self, obs, actions, rewards, next_obs, terminated, truncated) -> dict[str, torch.Tensor]:
+        """One SAC step on a batch of tensors already on `self.device` (rewards per eq. 3).
+
+        Returns the step's statistics as 0-dim tensors on the device: reading them
+        (`as_floats`) waits for the device, so callers do it only when they report.
+        """
         hp = self.hp
         alpha = self.log_alpha.exp().detach()
         done = terminated if not hp.time_limit_terminal else torch.maximum(terminated, truncated)
@@ -207,12 +219,12 @@ class Sac:
             torch._foreach_lerp_(self.target_params, self.critic_params, hp.tau)
 
         return {
-            "critic_loss": float((q1_loss + q2_loss).detach()) / 2,
-            "actor_loss": float(actor_loss.detach()),
-            "alpha": float(alpha),
-            "alpha_loss": float(alpha_loss.detach()),
-            "q_mean": float(q1.detach().mean()),
-            "entropy": float(-logp.detach().mean()),
+            "critic_loss": (q1_loss + q2_loss).detach() / 2,
+            "actor_loss": actor_loss.detach(),
+            "alpha": alpha,
+            "alpha_loss": alpha_loss.detach(),
+            "q_mean": q1.detach().mean(),
+            "entropy": -logp.detach().mean(),
         }
 
     # -- weights for actors -------------------------------------------------------

@@ -27,7 +27,7 @@ from common.zenoh_session import open_session, session_config
 from .checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import evaluate
 from .progress import ProgressLog
-from .sac import Sac, SacHyper
+from .sac import Sac, SacHyper, as_floats
 
 log = logging.getLogger("learner")
 
@@ -65,7 +65,7 @@ class Learner:
             self._restore(load_checkpoint(self.checkpoint_path))
         elif cfg.resume:
             log.info("--resume: no checkpoint at %s yet; starting fresh", self.checkpoint_path)
-        self.last_losses: dict[str, float] = {}
+        self._last_stats: dict[str, torch.Tensor] = {}
 
     # -- checkpoints -------------------------------------------------------------
     def counters(self) -> dict[str, Any]:
@@ -103,8 +103,13 @@ class Learner:
         trunc = t["truncated"].float()
         for b in range(batches):
             s = slice(b * batch_size, (b + 1) * batch_size)
-            self.last_losses = self.sac.update(t["obs"][s], t["actions"][s], t["rewards"][s], t["next_obs"][s], term[s], trunc[s])
+            self._last_stats = self.sac.update(t["obs"][s], t["actions"][s], t["rewards"][s], t["next_obs"][s], term[s], trunc[s])
             self.updates += 1
+
+    @property
+    def last_losses(self) -> dict[str, float]:
+        """The last update's statistics; reading them waits for the device, so only when reporting."""
+        return as_floats(self._last_stats)
 
     def target_updates(self) -> int:
         return int(max(0, self.cfg.total_steps - self.cfg.learning_starts) * self.cfg.samples_per_insert)
@@ -165,6 +170,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
             lrn.evals += 1
             lrn.last_eval_return = mean
             elapsed = time.monotonic() - start
+            losses = lrn.last_losses
             progress.row(
                 {
                     "time": round(elapsed, 3),
@@ -175,8 +181,8 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                     "eval_return_std": std,
                     "eval_length": length,
                     "alpha": lrn.sac.alpha,
-                    "critic_loss": lrn.last_losses.get("critic_loss", float("nan")),
-                    "actor_loss": lrn.last_losses.get("actor_loss", float("nan")),
+                    "critic_loss": losses.get("critic_loss", float("nan")),
+                    "actor_loss": losses.get("actor_loss", float("nan")),
                     "updates_per_s": lrn.updates / max(elapsed, 1e-9),
                 }
             )
@@ -274,10 +280,12 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                     "buffer_restarts": buffer_restarts,
                     "transitions_lost": transitions_lost,
                     "device": str(lrn.device),
-                } | {k: P.finite_or_none(v) for k, v in lrn.last_losses.items()}
+                }
+                losses = lrn.last_losses
+                stats |= {k: P.finite_or_none(v) for k, v in losses.items()}
                 stats_pub.put(P.encode_stats(stats))
                 if lrn.updates:
-                    progress.scalars({f"train/{k}": v for k, v in lrn.last_losses.items()} | {"train/updates_per_s": stats["updates_per_s"]}, lrn.env_steps)
+                    progress.scalars({f"train/{k}": v for k, v in losses.items()} | {"train/updates_per_s": stats["updates_per_s"]}, lrn.env_steps)
                 next_stats = now + cfg.stats_interval
             if lrn.env_steps >= cfg.total_steps and (lrn.updates >= lrn.target_updates() or rate_limited_at_end):
                 finished = True
