@@ -23,6 +23,8 @@ the same command after a crash or Ctrl-C picks up where it stopped.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import io
 import json
 import os
 import signal
@@ -152,11 +154,17 @@ class _Running:
         self.cell, self.proc, self.port, self.started, self.log = cell, proc, port, started, log
 
 
+def selected_cells(exp: dict[str, Any], seeds: list[int], only: str, shard: tuple[int, int]) -> list[Cell]:
+    """The cells this invocation runs: those whose name contains `only`, then every N-th from K."""
+    k, n = shard
+    cells = [c for c in cells_of(exp, seeds) if only in c.name]
+    return [c for i, c in enumerate(cells) if i % n == k - 1]
+
+
 def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: int, shard: tuple[int, int],
               only: str, dry_run: bool, port_base: int) -> int:
-    cells = [c for c in cells_of(exp, seeds) if only in c.name]
+    cells = selected_cells(exp, seeds, only, shard)
     k, n = shard
-    cells = [c for i, c in enumerate(cells) if i % n == k - 1]
     states = {c.name: cell_state(runs_dir / c.name) for c in cells}
     todo = [c for c in cells if states[c.name] != "done"]
     print(f"silcr sweep {exp['name']}: {len(cells)} cells in {runs_dir} (shard {k}/{n}); "
@@ -245,19 +253,32 @@ def run_sweep_cli(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     except ValueError:
         parser.error(f"--shard {args.shard!r}: use K/N with 1 <= K <= N, e.g. 2/3")
     runs_dir = Path(args.runs_dir or exp.get("runs_dir") or Path("runs") / exp["name"])
-    # Check every cell's options the way `silcr train` would, before starting any.
+    # Check every selected cell's options the way `silcr train` would, before starting any.
     from common.cli import build_parser
     from common.config import resolve
 
     train = build_parser()[1]["train"]
-    for cell in cells_of(exp, seeds):
+    problems: dict[str, list[str]] = {}  # one line per distinct problem, naming the cells it affects
+    for cell in selected_cells(exp, seeds, args.only, (k, n)):
         cmd = _command(cell, runs_dir, args.port_base, False)[3:]  # drop "python -m common.cli"
         try:
-            resolve(train.parse_args(cmd[1:]), "train")
-        except (ConfigError, SystemExit) as e:
-            parser.error(f"cell {cell.name}: {e}" if isinstance(e, ConfigError) else f"cell {cell.name} has a bad option")
+            with contextlib.redirect_stderr(io.StringIO()):  # argparse's own usage text; we report below
+                resolve(train.parse_args(cmd[1:]), "train")
+        except ConfigError as e:
+            problems.setdefault(str(e), []).append(cell.name)
+        except SystemExit:
+            problems.setdefault("a bad option", []).append(cell.name)
+    lines = [f"{msg} ({len(names)} cell{'s' * (len(names) > 1)}: {', '.join(names[:3])}{', ...' * (len(names) > 3)})"
+             for msg, names in problems.items()]
+    if problems and not args.dry_run:
+        for line in lines[:-1]:
+            print(f"silcr sweep: error: {line}", file=sys.stderr)
+        parser.error(lines[-1])
     try:
-        return run_sweep(exp, seeds, runs_dir, args.parallel, (k, n), args.only, args.dry_run, args.port_base)
+        rc = run_sweep(exp, seeds, runs_dir, args.parallel, (k, n), args.only, args.dry_run, args.port_base)
     except ExperimentError as e:
         print(f"silcr sweep: error: {e}", file=sys.stderr)
         return 1
+    for line in lines:  # a dry run shows the plan and then everything that would stop it
+        print(f"silcr sweep: error: {line}", file=sys.stderr)
+    return 2 if problems else rc

@@ -120,3 +120,25 @@ def test_an_interrupted_cell_resumes_from_its_checkpoint(tmp_path):
     r = subprocess.run([sys.executable, "-m", "common.cli", *args], capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 0 and "1 done" in r.stdout and "start" not in r.stdout
     assert tagged_pids(procs.tag) == []
+
+
+def test_invalid_cells_are_reported_together_and_a_dry_run_still_shows_the_plan(tmp_path):
+    path = tmp_path / "x.toml"
+    path.write_text('tasks = ["Hopper-v5", "Swimmer-v5"]\n[variants.silcr]\nalgo = "silcr"\n'
+                    '[variants.sqil]\nalgo = "sqil"\ndemos = "nowhere/{task}.npz"\n')
+
+    def sweep(*extra):
+        return subprocess.run([sys.executable, "-m", "common.cli", "sweep", str(path), "--seeds", "0-1",
+                               "--runs-dir", str(tmp_path / "runs"), *extra],
+                              capture_output=True, text=True, cwd=REPO, timeout=60)
+
+    r = sweep("--dry-run")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stdout.count("  new ") == 8  # the whole plan, valid cells included
+    errors = r.stderr.strip().splitlines()
+    assert len(errors) == 2  # one line per distinct problem, not per cell
+    assert "nowhere/Hopper-v5.npz (2 cells: sqil_Hopper-v5_s0, sqil_Hopper-v5_s1)" in errors[0]
+    assert sweep("--dry-run", "--only", "silcr").returncode == 0  # cells not selected are not checked
+    r = sweep()
+    assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 2
+    assert not (tmp_path / "runs").exists()  # nothing started
