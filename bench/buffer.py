@@ -16,6 +16,7 @@ import numpy as np
 import torch
 import zenoh
 
+from buffer_service.batches import compose_batches
 from buffer_service.service import ReplayState
 from common import protocol as P
 from common.config import Config
@@ -95,22 +96,26 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
         inserts = 1000 * len(payloads) / float(np.median(timings))
         req = P.SampleRequest(1, 128).encode()
         batches = rate(lambda: state.answer(req).encode(), 50 if quick else 300)
+        # The gather alone at 32 batches per request: what a GPU learner's data path could draw.
+        gather = 32 * rate(lambda: compose_batches(state.fifo, state.heap, 32, 128, state.rng, True, spec.obs_dim,
+                                                   spec.act_dim), 10 if quick else 50)
         # over Zenoh, buffer in its own process
         zinserts, zbatches = _over_zenoh(env_id, payloads, quick)
         bytes_per, minimum = memory_per_transition(spec, 1000, 20_000 if quick else 100_000)
         paper_gb = preallocated_bytes(spec, 1_000_000, 50_000) / 1e9
         results[name] = {
             "learner_updates_per_s": demand, "inserts_per_s_in_process": inserts, "batches_per_s_in_process": batches,
+            "gathered_batches_per_s_32_per_request": gather,
             "inserts_per_s_zenoh": zinserts, "batches_per_s_zenoh": zbatches,
             "zenoh_batches_vs_learner_demand": zbatches / demand,
             "bytes_per_transition": bytes_per, "minimum_bytes_per_transition": minimum,
             "memory_overhead": bytes_per / minimum - 1,
             "reserved_gb_for_1e6_online_5e4_expert": paper_gb,
         }
-        rows.append([name, inserts, batches, zinserts, zbatches, demand, zbatches / demand, bytes_per, minimum, paper_gb])
+        rows.append([name, inserts, batches, gather, zinserts, zbatches, demand, zbatches / demand, bytes_per, minimum, paper_gb])
     print_table("buffer (batch 128, 1000-step episodes)",
-                ["task", "inserts/s", "batches/s", "inserts/s zenoh", "batches/s zenoh", "learner/s", "zenoh x learner",
-                 "B/transition", "minimum B", "GB, 1e6 + 5e4"], rows)
+                ["task", "inserts/s", "batches/s", "gathered/s (32 per request)", "inserts/s zenoh", "batches/s zenoh",
+                 "learner/s", "zenoh x learner", "B/transition", "minimum B", "GB, 1e6 + 5e4"], rows)
     payload = {"results": results}
     write_json(out_dir, "buffer", payload)
     return payload
