@@ -43,7 +43,7 @@ class ExpertHeap:
         self._transitions = 0
         self.storage = RowStorage(capacity + capacity // 8 + 2)
         self.index = EpisodeIndex()
-        self._where: dict[int, tuple[int, int, Episode]] = {}  # id(stored episode) -> (slot, first row, it)
+        self._where: dict[int, tuple[int, Episode]] = {}  # id(stored episode) -> (slot in the index, it)
         self._end = 0  # rows [0, _end) are in use or freed by evictions
         self.admitted = 0
         self.rejected = 0
@@ -100,18 +100,18 @@ class ExpertHeap:
             if self._end + rows > self.storage.rows:
                 self.storage.grow(self._end + rows + self.capacity // 8)
                 with self.storage.lock:  # the stored episodes still view the old arrays
-                    for _, row, stored in self._where.values():
-                        self.storage.view(row, stored)
+                    for slot, stored in self._where.values():
+                        self.storage.view(int(self.index.row[slot]), stored)
         stored = dataclasses.replace(ep)
         with self.storage.lock:
             self.storage.write(self._end, stored)
             self.storage.view(self._end, stored)
-        self._where[id(stored)] = (self.index.add(self._end, stored), self._end, stored)
+        self._where[id(stored)] = (self.index.add(self._end, stored), stored)
         self._end += rows
         return stored
 
     def _release(self, ep: Episode) -> None:
-        slot, _, _ = self._where.pop(id(ep))
+        slot, _ = self._where.pop(id(ep))
         self.index.remove(slot)
         with self.storage.lock:
             detach(ep)  # its rows will be reused by the next compaction
@@ -120,8 +120,8 @@ class ExpertHeap:
         """Move the stored episodes to the front, in row order, so the free rows are at the end."""
         end = 0
         with self.storage.lock:
-            for key, (slot, row, ep) in sorted(self._where.items(), key=lambda kv: kv[1][1]):
-                n = ep.length + 1
+            for slot, ep in sorted(self._where.values(), key=lambda v: self.index.row[v[0]]):
+                n, row = ep.length + 1, int(self.index.row[slot])
                 if row != end:  # moving down in row order: numpy copies overlapping slices safely
                     st = self.storage
                     st.obs[end : end + n] = st.obs[row : row + n]
@@ -129,7 +129,6 @@ class ExpertHeap:
                     st.rewards[end : end + n] = st.rewards[row : row + n]
                     st.view(end, ep)
                     self.index.move(slot, end)
-                    self._where[key] = (slot, end, ep)
                 end += n
         self._end = end
 

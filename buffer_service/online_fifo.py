@@ -43,7 +43,7 @@ class OnlineFifo:
         longest = min(max_episode_steps or capacity, capacity)
         self.storage = RowStorage(capacity + capacity // 32 + 2 * (longest + 1))
         self.index = EpisodeIndex()
-        self._episodes: deque[tuple[int, int, Episode]] = deque()  # (slot, first row, episode), oldest first
+        self._episodes: deque[tuple[int, Episode]] = deque()  # (slot in the index, episode), oldest first
         self._head = 0  # next free row
         self.evicted_episodes = 0
         self.evicted_for_rows = 0
@@ -59,7 +59,7 @@ class OnlineFifo:
         """First row of `rows` free consecutive rows at the head, or None if the oldest episode is in the way."""
         if not self._episodes:
             return 0
-        tail = self._episodes[0][1]
+        tail = int(self.index.row[self._episodes[0][0]])
         if self._head > tail:  # live rows are [tail, head): free are [head, end) and [0, tail)
             if self._head + rows <= self.storage.rows:
                 return self._head
@@ -67,7 +67,7 @@ class OnlineFifo:
         return self._head if self._head + rows <= tail else None  # wrapped: free are [head, tail)
 
     def _evict_oldest(self) -> None:
-        slot, _, old = self._episodes.popleft()
+        slot, old = self._episodes.popleft()
         self.index.remove(slot)
         with self.storage.lock:
             detach(old)
@@ -85,11 +85,11 @@ class OnlineFifo:
         with self.storage.lock:
             self.storage.write(row, ep)
             self.storage.view(row, ep)
-        self._episodes.append((self.index.add(row, ep), row, ep))
+        self._episodes.append((self.index.add(row, ep), ep))
         self._head = row + ep.length + 1
 
     def episodes(self) -> list[Episode]:
-        return [e[2] for e in self._episodes]
+        return [e[1] for e in self._episodes]
 
     def gather(self, n: int, rng: np.random.Generator, out: dict[str, np.ndarray], rows: slice | np.ndarray,
                rewards: bool) -> None:

@@ -208,10 +208,7 @@ def test_a_killed_actor_is_restarted_and_the_run_finishes(tmp_path):
         session = client_when_up(port)
         stats = LatestJson(session, keys.stats_all)
         wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 20, 120, "training to start")
-        pids_file = tmp_path / "runs" / run / "pids.json"
-        old = json.loads(pids_file.read_text())["actor-0"]
-        os.kill(old, signal.SIGKILL)
-        wait_for(lambda: json.loads(pids_file.read_text())["actor-0"] != old, 30, "actor-0 to be restarted")
+        _kill_and_wait_for_restart(tmp_path / "runs" / run / "pids.json", "actor-0")
         assert train.wait(300) == 0, procs.log("train")
         buf = stats.get(keys.stats_buffer)
         assert buf["episodes_rejected"] == 0  # nothing stored twice, nothing malformed
