@@ -5,11 +5,15 @@ transition-level and can keep partial episodes):
 
 1. An episode longer than M transitions is rejected.
 2. If it fits (stored + its length <= M) it enters.
-3. Otherwise it enters only if evicting stored episodes whose return is strictly
-   lower than its own, lowest first (older first among equal returns), frees
+3. Otherwise it enters only if evicting stored episodes whose key is strictly
+   lower than its own, lowest first (older first among equal keys), frees
    enough room; those are evicted and it enters. If not, it is rejected and
    nothing is evicted.
 
+The key is the episode's return (`admission="return"`, SILCR). The control
+`admission="recent"` keys episodes by arrival instead, so every episode enters and
+the oldest leave: D_E then holds the latest M transitions, with the same size and
+the same constant rewards but no ranking (docs/algorithm.md, "The ranking at work").
 So ties never displace a stored episode, and a rejection never loses data.
 
 Admitted episodes are copied into this table's own rows (`storage.RowStorage`),
@@ -27,17 +31,21 @@ import itertools
 
 import numpy as np
 
+from common.config import EXPERT_ADMISSIONS
 from common.protocol import Episode
 
 from .storage import EpisodeIndex, RowStorage, detach
 
 
 class ExpertHeap:
-    def __init__(self, capacity: int) -> None:
+    def __init__(self, capacity: int, admission: str = "return") -> None:
         if capacity <= 0:
             raise ValueError(f"expert capacity must be positive, got {capacity}")
+        if admission not in EXPERT_ADMISSIONS:
+            raise ValueError(f"admission must be one of {EXPERT_ADMISSIONS}, got {admission!r}")
         self.capacity = capacity
-        # Min-heap of (return, insertion order, episode): the root is the first to go.
+        self.admission = admission
+        # Min-heap of (key, insertion order, episode): the root is the first to go.
         self._heap: list[tuple[float, int, Episode]] = []
         self._order = itertools.count()
         self._transitions = 0
@@ -48,6 +56,7 @@ class ExpertHeap:
         self.admitted = 0
         self.rejected = 0
         self.evicted = 0
+        self._return_range: tuple[float, float] | None = None  # (min, max) of stored returns, cached
 
     def __len__(self) -> int:
         return self._transitions
@@ -56,13 +65,25 @@ class ExpertHeap:
     def num_episodes(self) -> int:
         return len(self._heap)
 
+    def _returns(self) -> tuple[float, float] | None:
+        if self._return_range is None and self._heap:
+            returns = [e[2].episode_return for e in self._heap]
+            self._return_range = (min(returns), max(returns))
+        return self._return_range
+
     @property
     def min_return(self) -> float | None:
-        return self._heap[0][0] if self._heap else None
+        r = self._returns()
+        return r[0] if r else None
 
     @property
     def max_return(self) -> float | None:
-        return max(e[0] for e in self._heap) if self._heap else None
+        r = self._returns()
+        return r[1] if r else None
+
+    def key(self, ep: Episode, order: int) -> float:
+        """What D_E ranks `ep` by: its return, or (the recency control) its arrival."""
+        return ep.episode_return if self.admission == "return" else float(order)
 
     def offer(self, ep: Episode) -> bool:
         """Apply the admission rule; return whether `ep` entered."""
@@ -70,11 +91,13 @@ class ExpertHeap:
         if ep.length > self.capacity:
             self.rejected += 1
             return False
+        order = next(self._order)
+        key = self.key(ep, order)
         if need > 0:
             # Pop strictly-worse episodes in eviction order until `ep` fits; undo if it never does.
             popped: list[tuple[float, int, Episode]] = []
             freed = 0
-            while freed < need and self._heap and self._heap[0][0] < ep.episode_return:
+            while freed < need and self._heap and self._heap[0][0] < key:
                 popped.append(heapq.heappop(self._heap))
                 freed += popped[-1][2].length
             if freed < need:
@@ -87,9 +110,10 @@ class ExpertHeap:
             for _, _, old in popped:
                 self._release(old)
         stored = self._store(ep)
-        heapq.heappush(self._heap, (ep.episode_return, next(self._order), stored))
+        heapq.heappush(self._heap, (key, order, stored))
         self._transitions += ep.length
         self.admitted += 1
+        self._return_range = None
         return True
 
     def _store(self, ep: Episode) -> Episode:
@@ -136,7 +160,7 @@ class ExpertHeap:
         return [e[2] for e in self._heap]
 
     def entries(self) -> list[tuple[float, int, Episode]]:
-        """(return, admission order, episode) of every stored episode, for checkpoints."""
+        """(key, admission order, episode) of every stored episode, for checkpoints."""
         return list(self._heap)
 
     def restore(self, entries: list[tuple[float, int, Episode]], admitted: int, rejected: int, evicted: int) -> None:
@@ -150,10 +174,11 @@ class ExpertHeap:
         heapq.heapify(self._heap)
         self._order = itertools.count(max((e[1] for e in entries), default=-1) + 1)
         self._transitions = total
+        self._return_range = None
         self.admitted, self.rejected, self.evicted = admitted, rejected, evicted
 
     def returns(self) -> list[float]:
-        return [e[0] for e in self._heap]
+        return [e[2].episode_return for e in self._heap]
 
     def gather(self, n: int, rng: np.random.Generator, out: dict[str, np.ndarray], rows: slice | np.ndarray,
                rewards: bool) -> None:

@@ -47,7 +47,7 @@ class ReplayState:
         self.fifo = OnlineFifo(cfg.online_capacity, spec.max_episode_steps)
         self.heap: ExpertHeap | None = None
         if cfg.algo == "silcr":
-            self.heap = ExpertHeap(cfg.expert_capacity)
+            self.heap = ExpertHeap(cfg.expert_capacity, cfg.expert_admission)
         elif cfg.algo == "sqil":
             # SQIL: D_E is the demonstrations, loaded once and never changed (reference.md).
             demos = load_demos(Path(cfg.demos), spec)
@@ -100,11 +100,15 @@ class ReplayState:
 
     # -- batches ----------------------------------------------------------------
     def meta(self) -> dict[str, Any]:
+        heap = self.heap
         return {
             "env_steps": self.transitions_received,
             "episodes_received": self.episodes_received,
             "online_transitions": len(self.fifo),
-            "expert_transitions": len(self.heap) if self.heap is not None else 0,
+            "expert_transitions": len(heap) if heap is not None else 0,
+            "expert_episodes": heap.num_episodes if heap is not None else 0,
+            "expert_min_return": P.finite_or_none(heap.min_return) if heap is not None else None,
+            "expert_max_return": P.finite_or_none(heap.max_return) if heap is not None else None,
         }
 
     def answer(self, payload: bytes | None) -> P.BatchReply:

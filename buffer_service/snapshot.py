@@ -81,6 +81,7 @@ def take(state: "ReplayState") -> Snapshot:
         "kind": SNAPSHOT_KIND,
         "env": state.spec.env_id,
         "algo": state.cfg.algo,
+        "expert_admission": heap.admission if heap else None,
         "written_at": time.time(),
         "counters": {
             "episodes_received": state.episodes_received,
@@ -132,6 +133,10 @@ def restore(path: Path, state: "ReplayState") -> Snapshot:
             if header["env"] != state.spec.env_id or header["algo"] != state.cfg.algo:
                 raise SnapshotError(f"{path} is for {header['algo']} on {header['env']}, this run is "
                                     f"{state.cfg.algo} on {state.spec.env_id}")
+            admission = state.heap.admission if state.cfg.algo == "silcr" and state.heap is not None else None
+            if state.cfg.algo == "silcr" and header.get("expert_admission", "return") != admission:
+                raise SnapshotError(f"{path} ranks D_E by {header.get('expert_admission', 'return')}, this run by "
+                                    f"{admission} (--expert-admission)")
             episodes = []
             for _ in range(int(header["n_episodes"])):
                 payload = next(unpacker)

@@ -22,6 +22,8 @@ from common.envs import REWARD_MODES
 from common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
 
 ALGOS = ("silcr", "sac", "sqil")
+EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.expert_heap)
+TANH_LOG_PROB_FORMS = ("exact", "official")  # log(1 - tanh^2) in the policy's log-probability (learner.sac)
 DEVICES = ("auto", "cpu", "cuda")
 ZENOH_MODES = ("peer", "client")
 
@@ -63,6 +65,8 @@ class Config:
     # --- buffer service --------------------------------------------------------
     online_capacity: int = _opt(1_000_000, SERVICE, "D_O size in transitions (Table I: 1e6)")
     expert_capacity: int = _opt(50_000, SERVICE, "D_E size M in transitions (Table I: 5e4)")
+    expert_admission: str = _opt("return", {"train", "buffer"}, "what D_E keeps: return: the best episodes by return (SILCR); "
+                                 "recent: the latest episodes (a control without the ranking)", choices=EXPERT_ADMISSIONS)
     batch_size: int = _opt(128, SERVICE, "transitions per update; SILCR takes half from each buffer (official: 64 + 64)")
     learning_starts: int = _opt(10_240, SERVICE, "no update until D_O holds more than this many transitions (official code)")
     samples_per_insert: float = _opt(1.0, SERVICE, "gradient updates per environment step (official: 1)")
@@ -79,6 +83,8 @@ class Config:
     grad_clip: float = _opt(40.0, {"train", "learner"}, "gradient-norm clip for actor and each critic (0: off)")
     init_alpha: float = _opt(1.0, {"train", "learner"}, "initial entropy temperature")
     time_limit_terminal: bool = _opt(False, {"train", "learner"}, "treat time-limit truncation as terminal, as the official code does")
+    tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
+                              "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
     total_steps: int = _opt(2_000_000, {"train", "learner"}, "environment-step budget of the run")
     weights_interval: int = _opt(50, {"train", "learner"}, "publish policy weights every N updates")
     eval_interval: int = _opt(5_000, {"train", "learner"}, "evaluate the deterministic policy every N environment steps")
@@ -288,5 +294,7 @@ def validate(cfg: Config, role: str) -> None:
             raise ConfigError("--demos", f"only --algo sqil uses demonstrations (got --algo {cfg.algo})")
         if cfg.demos and not Path(cfg.demos).is_file():
             raise ConfigError("--demos", f"no such file: {cfg.demos}")
+        if cfg.expert_admission != "return" and cfg.algo != "silcr":
+            raise ConfigError("--expert-admission", f"only --algo silcr fills D_E from its own episodes (got --algo {cfg.algo})")
     if cfg.learning_starts >= cfg.online_capacity:
         raise ConfigError("--learning-starts", f"must be below --online-capacity ({cfg.online_capacity})")

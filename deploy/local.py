@@ -201,6 +201,18 @@ def run_train(cfg: Config) -> int:
     return code
 
 
+def divergence_warning(learner_stats: dict[str, Any]) -> str:
+    """The one line `silcr train` prints when the critics first pass the soft-Q bound."""
+    def num(key: str) -> str:
+        v = learner_stats.get(key)
+        return f"{v:.4g}" if isinstance(v, (int, float)) else "?"
+
+    return (f"silcr train: warning: the critics are diverging: {learner_stats.get('q_bound_exceeded')} update(s) by "
+            f"{learner_stats.get('env_steps', '?')} env steps had Q above the largest soft-Q value the rewards and alpha "
+            f"allow (now: max Q {num('q_max')}, bound {num('q_bound')}); a smaller --tau helps (docs/algorithm.md, "
+            f"'Divergence')")
+
+
 def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
     """Follow the run until the learner finishes (0) or a component dies (1)."""
     from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
@@ -217,10 +229,21 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
     task = progress.add_task("train", total=cfg.total_steps, updates=0, version=0, eval="-")
     last_print = 0.0
     clean_exit_seen: dict[str, float] = {}
+    warned_divergence = False
+
+    def say(message: str) -> None:
+        if interactive:
+            progress.console.print(message)
+        else:
+            print(message, flush=True)
+
     with progress:
         while True:
             snap = stats.as_dict()
             lr = snap["learner"] or {}
+            if not warned_divergence and (lr.get("q_bound_exceeded") or 0) > 0:
+                warned_divergence = True
+                say(divergence_warning(lr))
             env_steps = max(int(lr.get("env_steps", 0)), int((snap["buffer"] or {}).get("transitions_received", 0)))
             ev = lr.get("last_eval_return")
             ev_s = f"{ev:.1f}" if isinstance(ev, (int, float)) else "-"
@@ -239,12 +262,8 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     # Actors hold no state that matters: start a fresh one (new incarnation). The
                     # buffer and the learner come back from their latest checkpoints.
                     run.restarts[name] = run.restarts.get(name, 0) + 1
-                    message = (f"silcr train: {name} exited with code {p.exitcode}; restarting it "
-                               f"({run.restarts[name]}/{cfg.max_restarts})")
-                    if interactive:
-                        progress.console.print(message)
-                    else:
-                        print(message, flush=True)
+                    say(f"silcr train: {name} exited with code {p.exitcode}; restarting it "
+                        f"({run.restarts[name]}/{cfg.max_restarts})")
                     role, acfg = run.specs[name]
                     if role in ("buffer", "learner"):
                         acfg = Config(**acfg.to_dict() | {"resume": True})

@@ -71,7 +71,8 @@ def _table(snap: dict[str, Any]):
         if k in b:
             t.add_row("buffer", k, _fmt(b[k]))
     lr = snap["learner"] or {}
-    for k in ("env_steps", "updates", "policy_version", "last_eval_return", "updates_per_s", "duty_cycle", "batch_wait_ms_p99", "alpha"):
+    for k in ("env_steps", "updates", "policy_version", "last_eval_return", "updates_per_s", "duty_cycle", "batch_wait_ms_p99", "alpha",
+              "q_mean", "q_max", "q_bound", "q_bound_exceeded"):
         if k in lr:
             t.add_row("learner", k, _fmt(lr[k]))
     for aid, a in sorted(snap["actors"].items()):

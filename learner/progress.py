@@ -7,6 +7,12 @@ import math
 from pathlib import Path
 from typing import Any
 
+#: The critics' health at the last update before the row (docs/algorithm.md, "Divergence"):
+#: `q_bound_exceeded` counts every update so far whose largest Q passed the soft-Q bound.
+DIVERGENCE_COLUMNS = ["q_mean", "q_max", "target_q_mean", "log_pi_mean", "q_bound", "q_bound_exceeded"]
+#: D_E as the buffer service last described it (empty for plain SAC).
+EXPERT_COLUMNS = ["expert_transitions", "expert_episodes", "expert_min_return", "expert_max_return"]
+
 PROGRESS_COLUMNS = [
     "time",
     "env_steps",
@@ -19,6 +25,8 @@ PROGRESS_COLUMNS = [
     "critic_loss",
     "actor_loss",
     "updates_per_s",
+    *DIVERGENCE_COLUMNS,
+    *EXPERT_COLUMNS,
 ]
 
 
@@ -29,6 +37,8 @@ class ProgressLog:
         run_dir.mkdir(parents=True, exist_ok=True)
         self.csv_path = run_dir / "progress.csv"
         new = not (resume and self.csv_path.exists())
+        if not new:
+            _upgrade_header(self.csv_path)
         self._file = open(self.csv_path, "w" if new else "a", newline="")
         self._csv = csv.DictWriter(self._file, fieldnames=PROGRESS_COLUMNS, extrasaction="ignore")
         if new:
@@ -52,3 +62,18 @@ class ProgressLog:
     def close(self) -> None:
         self._file.close()
         self.tb.close()
+
+
+def _upgrade_header(path: Path) -> None:
+    """Rewrite a progress.csv written with other columns (an older silcr) under today's, so resumed rows line up."""
+    with open(path, newline="") as f:
+        reader = csv.DictReader(f)
+        if reader.fieldnames == PROGRESS_COLUMNS:
+            return
+        rows = list(reader)
+    tmp = path.with_suffix(".csv.tmp")
+    with open(tmp, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=PROGRESS_COLUMNS, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(rows)
+    tmp.replace(path)

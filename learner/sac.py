@@ -14,7 +14,8 @@ Automatic temperature tuning (not in the paper, in the official code):
   J(alpha) = E[-log_alpha * (log pi(a|s) + target_entropy)].
 
 Details follow the official code (docs/algorithm.md lists them), except the
-tanh log-probability correction, computed in its exact stable form (see `Actor.sample`): mean-squared
+tanh log-probability correction, computed by default in its exact stable form
+(see `Actor.sample`; `tanh_log_prob="official"` gives the official one): mean-squared
 critic loss without the 1/2, gradient-norm clip 40 per critic and for the actor,
 the actor step against the just-updated critics, the alpha step using that
 actor step's log-probabilities, soft target update with tau = 0.05 after every
@@ -30,6 +31,8 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 from torch import nn
+
+from common.config import TANH_LOG_PROB_FORMS
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 LOG2 = float(np.log(2.0))
@@ -47,11 +50,15 @@ def mlp(sizes: list[int], inplace: bool = False) -> nn.Sequential:
 class Actor(nn.Module):
     """Tanh-squashed Gaussian policy; outputs actions in [-1, 1] (rescaled to the env by the caller)."""
 
-    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], inplace: bool = True) -> None:
+    def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], inplace: bool = True,
+                 tanh_log_prob: str = "exact") -> None:
         super().__init__()
+        if tanh_log_prob not in TANH_LOG_PROB_FORMS:
+            raise ValueError(f"tanh_log_prob must be one of {TANH_LOG_PROB_FORMS}, got {tanh_log_prob!r}")
         self.trunk = mlp([obs_dim, *hidden], inplace)
         self.mean = nn.Linear(hidden[-1], act_dim)
         self.log_std = nn.Linear(hidden[-1], act_dim)
+        self.exact_log_prob = tanh_log_prob == "exact"
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         h = self.trunk(obs)
@@ -64,11 +71,12 @@ class Actor(nn.Module):
         u = mean + std * torch.randn_like(mean)
         a = torch.tanh(u)
         log_prob = (-0.5 * ((u - mean) / std) ** 2 - log_std - 0.5 * np.log(2 * np.pi)).sum(-1)
-        # log(1 - tanh(u)^2) in its exact, stable form. The official log(1 - a^2 + 1e-6) has
-        # zero gradient once tanh saturates in float32, so a saturated policy never comes
-        # back and alpha grows without bound (seen on Reacher and Hopper; docs/algorithm.md).
-        log_prob = log_prob - (2.0 * (LOG2 - u - F.softplus(-2.0 * u))).sum(-1)
-        return a, log_prob
+        if self.exact_log_prob:
+            # log(1 - tanh(u)^2) in its exact, stable form. The official log(1 - a^2 + 1e-6) has
+            # zero gradient once tanh saturates in float32, so a saturated policy never comes
+            # back and alpha grows without bound (seen on Reacher and Hopper; docs/algorithm.md).
+            return a, log_prob - (2.0 * (LOG2 - u - F.softplus(-2.0 * u))).sum(-1)
+        return a, log_prob - torch.log(1.0 - a.pow(2) + 1e-6).sum(-1)  # the official code's form
 
     @torch.no_grad()
     def act_deterministic(self, obs: torch.Tensor) -> torch.Tensor:
@@ -122,6 +130,13 @@ class SacHyper:
     init_alpha: float = 1.0
     target_entropy: float | None = None  # default: -act_dim
     time_limit_terminal: bool = False
+    tanh_log_prob: str = "exact"  # or "official": log(1 - tanh(u)^2 + 1e-6)
+
+
+#: An update counts as past the soft-Q bound when its largest Q exceeds the bound by
+#: more than this fraction of the bound's size (at least 1): fitted critics overshoot
+#: a little, diverging ones by orders of magnitude (docs/algorithm.md).
+Q_BOUND_SLACK = 0.5
 
 
 def _adam(params: list[torch.Tensor], lr: float) -> torch.optim.Adam:
@@ -146,7 +161,7 @@ class Sac:
         self.hp = hp
         self.device = device
         self.obs_dim, self.act_dim, self.hidden = obs_dim, act_dim, list(hidden)
-        self.actor = Actor(obs_dim, act_dim, hidden).to(device)
+        self.actor = Actor(obs_dim, act_dim, hidden, tanh_log_prob=hp.tanh_log_prob).to(device)
         self.critic = TwinCritic(obs_dim, act_dim, hidden).to(device)
         self.critic_target = TwinCritic(obs_dim, act_dim, hidden).to(device)
         self.critic_target.load_state_dict(self.critic.state_dict())
@@ -162,6 +177,19 @@ class Sac:
         self.critic_opt = _adam(self.critic_params, hp.lr)
         self.actor_opt = _adam(list(self.actor.parameters()), hp.lr)
         self.alpha_opt = _adam([self.log_alpha], hp.lr)
+        # Divergence watch (`q_bound`), kept on the device so that no update waits for it.
+        # The policy's actions lie in [-1, 1]^d, so its entropy is at most d log 2 (the
+        # uniform distribution's), and a soft Q-value is at most
+        #   (r_max + gamma * alpha * d log 2) / (1 - gamma).
+        # Critics carry the entropy bonus of earlier, larger temperatures for about
+        # 1 / (tau (1 - gamma)) updates (the target network moves at rate tau, the horizon
+        # is 1 / (1 - gamma) backups), so the alpha in the bound is the current one or, if
+        # larger, a running value that decays to it at that rate: a falling alpha does not
+        # make healthy critics look divergent.
+        self.entropy_max = act_dim * LOG2
+        self.reward_max = torch.tensor(float("-inf"), device=device)
+        self.alpha_for_bound = torch.tensor(hp.init_alpha, device=device)
+        self.q_bound_exceeded = torch.zeros((), dtype=torch.int64, device=device)
 
     @property
     def alpha(self) -> float:
@@ -217,6 +245,7 @@ class Sac:
         # Polyak averaging of the target critics: target += tau * (online - target)
         with torch.no_grad():
             torch._foreach_lerp_(self.target_params, self.critic_params, hp.tau)
+            q_max, q_bound = self._watch_q_bound(torch.maximum(q1, q2).max(), rewards, alpha)
 
         return {
             "critic_loss": (q1_loss + q2_loss).detach() / 2,
@@ -224,8 +253,25 @@ class Sac:
             "alpha": alpha,
             "alpha_loss": alpha_loss.detach(),
             "q_mean": q1.detach().mean(),
+            "q_max": q_max,
+            "target_q_mean": y.mean(),
+            "log_pi_mean": logp.detach().mean(),
             "entropy": -logp.detach().mean(),
+            "q_bound": q_bound,
         }
+
+    def _watch_q_bound(self, q_max: torch.Tensor, rewards: torch.Tensor, alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Update the bound's inputs and the count of updates past it; return (q_max, q_bound)."""
+        hp = self.hp
+        torch.maximum(self.reward_max, rewards.max(), out=self.reward_max)
+        decayed = torch.lerp(self.alpha_for_bound, alpha, hp.tau * (1.0 - hp.gamma))
+        torch.maximum(decayed, alpha, out=self.alpha_for_bound)
+        if hp.gamma >= 1.0:  # no discount: no finite bound
+            return q_max, torch.tensor(float("inf"), device=q_max.device)
+        q_bound = (self.reward_max + hp.gamma * self.alpha_for_bound * self.entropy_max) / (1.0 - hp.gamma)
+        slack = Q_BOUND_SLACK * torch.clamp(q_bound.abs(), min=1.0)
+        self.q_bound_exceeded += (q_max > q_bound + slack).long()
+        return q_max, q_bound
 
     # -- weights for actors -------------------------------------------------------
     def actor_arrays(self) -> dict[str, np.ndarray]:
@@ -245,6 +291,11 @@ class Sac:
             "actor_opt": self.actor_opt.state_dict(),
             "alpha_opt": self.alpha_opt.state_dict(),
             "arch": self.arch(),
+            "q_bound_watch": {
+                "reward_max": self.reward_max.detach().cpu(),
+                "alpha_for_bound": self.alpha_for_bound.detach().cpu(),
+                "exceeded": self.q_bound_exceeded.detach().cpu(),
+            },
         }
 
     def load_state_dict(self, sd: dict) -> None:
@@ -255,3 +306,9 @@ class Sac:
         self.critic_opt.load_state_dict(sd["critic_opt"])
         self.actor_opt.load_state_dict(sd["actor_opt"])
         self.alpha_opt.load_state_dict(sd["alpha_opt"])
+        watch = sd.get("q_bound_watch")  # absent from checkpoints written before it existed
+        if watch is not None:
+            with torch.no_grad():
+                self.reward_max.copy_(watch["reward_max"])
+                self.alpha_for_bound.copy_(watch["alpha_for_bound"])
+                self.q_bound_exceeded.copy_(watch["exceeded"])

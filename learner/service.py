@@ -26,7 +26,7 @@ from common.zenoh_session import open_session, session_config
 
 from .checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import evaluate
-from .progress import ProgressLog
+from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, ProgressLog
 from .sac import Sac, SacHyper, as_floats
 
 log = logging.getLogger("learner")
@@ -49,7 +49,8 @@ class Learner:
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)
         torch.manual_seed(cfg.seed)
-        hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal)
+        hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
+                      cfg.tanh_log_prob)
         self.sac = Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
         self.updates = 0
         self.policy_version = 0
@@ -108,8 +109,10 @@ class Learner:
 
     @property
     def last_losses(self) -> dict[str, float]:
-        """The last update's statistics; reading them waits for the device, so only when reporting."""
-        return as_floats(self._last_stats)
+        """The last update's statistics and the divergence count; reading them waits for the device, so only when reporting."""
+        out = as_floats(self._last_stats)
+        out["q_bound_exceeded"] = int(self.sac.q_bound_exceeded)
+        return out
 
     def target_updates(self) -> int:
         return int(max(0, self.cfg.total_steps - self.cfg.learning_starts) * self.cfg.samples_per_insert)
@@ -134,6 +137,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
     update_time = 0.0
     sample_errors = 0
     not_ready = 0
+    buffer_meta: dict[str, Any] = {}  # the latest batch reply's description of the buffer (D_E's returns)
     with open_session(conf) as session:
         latest = {"payload": P.encode_weights(lrn.weights())}
 
@@ -184,6 +188,8 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                     "critic_loss": losses.get("critic_loss", float("nan")),
                     "actor_loss": losses.get("actor_loss", float("nan")),
                     "updates_per_s": lrn.updates / max(elapsed, 1e-9),
+                    **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS},
+                    **{k: buffer_meta.get(k) for k in EXPERT_COLUMNS},
                 }
             )
             log.info(
@@ -237,6 +243,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                     log.warning("the buffer service restarted: %d transitions it had received since its last "
                                 "checkpoint are lost (%d in all)", last_buffer_steps - buffer_steps, transitions_lost)
                 last_buffer_steps = buffer_steps
+                buffer_meta = batch.meta
                 lrn.env_steps = max(lrn.env_steps, buffer_steps)
                 if batch.status == "ok":
                     # Policy lag: how many weight versions behind the learner the sampled data is.
@@ -283,6 +290,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                 }
                 losses = lrn.last_losses
                 stats |= {k: P.finite_or_none(v) for k, v in losses.items()}
+                stats["q_bound_exceeded"] = losses.get("q_bound_exceeded", 0)
                 stats_pub.put(P.encode_stats(stats))
                 if lrn.updates:
                     progress.scalars({f"train/{k}": v for k, v in losses.items()} | {"train/updates_per_s": stats["updates_per_s"]}, lrn.env_steps)
