@@ -65,12 +65,15 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             continue
         if role == "sweep":
             p.add_argument("experiment", help="experiment TOML file (see experiments/)")
-            p.add_argument("--seeds", default="0-2", help="seeds as a range and/or list, e.g. 0-4 or 0,3,7 (default: 0-2)")
+            p.add_argument("--seeds", default=None, help="seeds as a range and/or list, e.g. 0-4 or 0,3,7 (default: the "
+                           "experiment file's `seeds`, else 0-2)")
             p.add_argument("--runs-dir", default="", help="where the cells' run directories go (default: the file's runs_dir, else runs/<experiment>)")
             p.add_argument("--parallel", type=int, default=1, help="cells run at once (default: 1)")
             p.add_argument("--shard", default="1/1", help="K/N: run only the K-th of N shares of the cells, to spread a sweep over N machines (default: 1/1)")
             p.add_argument("--only", default="", help="run only cells whose name contains this text")
             p.add_argument("--dry-run", action="store_true", help="list the cells and their state, run nothing")
+            p.add_argument("--resume", action="store_true", help="continue cells that were stopped midway from their "
+                           "checkpoints (without it, such cells stop the sweep before anything starts)")
             p.add_argument("--port-base", type=int, default=17500, help="first router port; cell i uses port-base + i (default: 17500)")
             continue
         if role == "bench":

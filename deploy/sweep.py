@@ -16,8 +16,10 @@ An experiment is a TOML file (see `experiments/`):
 Each cell is one `silcr train` run named `<variant>_<task>_s<seed>` in the sweep's
 runs directory. A cell is *done* once its run exited cleanly (marker file
 `sweep-done.json`); a cell with a learner checkpoint but no marker was stopped
-midway and continues with `--resume`; any other cell starts fresh. So re-running
-the same command after a crash or Ctrl-C picks up where it stopped.
+midway and, with `silcr sweep --resume`, continues from its checkpoints; any other
+cell starts fresh. So `--resume` after a crash, Ctrl-C or the end of a working
+session picks up where it stopped; without it, stopped cells are reported and
+nothing starts (a sweep never silently continues or overwrites a half-done run).
 """
 
 from __future__ import annotations
@@ -162,18 +164,23 @@ def selected_cells(exp: dict[str, Any], seeds: list[int], only: str, shard: tupl
 
 
 def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: int, shard: tuple[int, int],
-              only: str, dry_run: bool, port_base: int) -> int:
+              only: str, dry_run: bool, port_base: int, resume: bool = True) -> int:
     cells = selected_cells(exp, seeds, only, shard)
     k, n = shard
     states = {c.name: cell_state(runs_dir / c.name) for c in cells}
     todo = [c for c in cells if states[c.name] != "done"]
+    partial = [c.name for c in cells if states[c.name] == "partial"]
     print(f"silcr sweep {exp['name']}: {len(cells)} cells in {runs_dir} (shard {k}/{n}); "
-          f"{len(cells) - len(todo)} done, {sum(s == 'partial' for s in states.values())} to resume, "
+          f"{len(cells) - len(todo)} done, {len(partial)} to resume, "
           f"{sum(s == 'new' for s in states.values())} new", flush=True)
     if dry_run:
         for c in cells:
             print(f"  {states[c.name]:8s} {c.name}")
         return 0
+    if partial and not resume:
+        raise ExperimentError(f"{len(partial)} cell(s) were stopped midway ({', '.join(partial[:3])}"
+                              f"{', ...' if len(partial) > 3 else ''}); add --resume to continue them from their "
+                              f"checkpoints, or delete their directories to start them again")
     runs_dir.mkdir(parents=True, exist_ok=True)
 
     def sigterm(signum: int, frame: object) -> None:  # `kill` takes the same clean path as Ctrl-C
@@ -219,7 +226,8 @@ def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: i
                     print(f"[{finished}/{len(cells)}] FAILED {r.cell.name} (exit {rc}); see {runs_dir / r.cell.name / 'sweep.log'}",
                           flush=True)
     except KeyboardInterrupt:
-        print(f"\nsilcr sweep: interrupted; stopping {len(running)} running cell(s); re-run the same command to resume",
+        print(f"\nsilcr sweep: interrupted; stopping {len(running)} running cell(s); run the same command with --resume "
+              f"to continue",
               file=sys.stderr, flush=True)
         for r in running:
             r.proc.send_signal(signal.SIGINT)
@@ -241,7 +249,7 @@ def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: i
 def run_sweep_cli(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     try:
         exp = load_experiment(Path(args.experiment))
-        seeds = parse_seeds(args.seeds)
+        seeds = parse_seeds(args.seeds if args.seeds is not None else exp.get("seeds", "0-2"))
     except ExperimentError as e:
         parser.error(str(e))
     if args.parallel < 1:
@@ -275,10 +283,10 @@ def run_sweep_cli(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
             print(f"silcr sweep: error: {line}", file=sys.stderr)
         parser.error(lines[-1])
     try:
-        rc = run_sweep(exp, seeds, runs_dir, args.parallel, (k, n), args.only, args.dry_run, args.port_base)
+        rc = run_sweep(exp, seeds, runs_dir, args.parallel, (k, n), args.only, args.dry_run, args.port_base, args.resume)
     except ExperimentError as e:
         print(f"silcr sweep: error: {e}", file=sys.stderr)
-        return 1
+        return 2 if "--resume" in str(e) else 1
     for line in lines:  # a dry run shows the plan and then everything that would stop it
         print(f"silcr sweep: error: {line}", file=sys.stderr)
     return 2 if problems else rc

@@ -100,7 +100,12 @@ def test_an_interrupted_cell_resumes_from_its_checkpoint(tmp_path):
         stopped_at = load_checkpoint(ckpt)["counters"]["updates"]
         assert stopped_at < 3400  # really midway
 
-        sweep = procs.start("sweep2", *args)
+        # Without --resume a half-done cell stops the sweep before anything starts.
+        r = subprocess.run([sys.executable, "-m", "common.cli", *args], capture_output=True, text=True, cwd=REPO, timeout=120)
+        assert r.returncode == 2 and "--resume" in r.stderr and "Traceback" not in r.stderr, r.stderr
+        assert cell_state(cell_dir) == "partial"
+
+        sweep = procs.start("sweep2", *args, "--resume")
         assert sweep.wait(400) == 0, procs.log("sweep2") + (cell_dir / "sweep.log").read_text()[-3000:]
     finally:
         procs.stop_all()
