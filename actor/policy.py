@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from common.protocol import ProtocolError, Weights
+from silcr.common.protocol import ProtocolError, Weights
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 

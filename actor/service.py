@@ -16,11 +16,11 @@ import time
 import numpy as np
 import zenoh
 
-from common import protocol as P
-from common.config import Config
-from common.envs import EnvSpec, make_env
-from common.lifecycle import StopFlag
-from common.zenoh_session import open_session, session_config
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec, make_env
+from silcr.common.lifecycle import StopFlag
+from silcr.common.zenoh_session import open_session, session_config
 
 from .policy import NumpyPolicy, initial_weights
 

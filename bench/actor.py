@@ -8,10 +8,10 @@ from typing import Any
 
 import numpy as np
 
-from actor.policy import NumpyPolicy, initial_weights
-from common import protocol as P
-from common.envs import EnvSpec, make_env
-from deploy.monitor import StatsSnapshot
+from silcr.actor.policy import NumpyPolicy, initial_weights
+from silcr.common import protocol as P
+from silcr.common.envs import EnvSpec, make_env
+from silcr.deploy.monitor import StatsSnapshot
 
 from .procs import Components, wait_until
 from .timing import print_table, write_json

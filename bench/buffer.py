@@ -16,14 +16,14 @@ import numpy as np
 import torch
 import zenoh
 
-from buffer_service.batches import compose_batches
-from buffer_service.service import ReplayState
-from common import protocol as P
-from common.config import Config
-from common.envs import EnvSpec
-from learner.sac import Sac, SacHyper
+from silcr.buffer_service.batches import compose_batches
+from silcr.buffer_service.service import ReplayState
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
+from silcr.learner.sac import Sac, SacHyper
 
-from deploy.monitor import StatsSnapshot
+from silcr.deploy.monitor import StatsSnapshot
 
 from .procs import Components, wait_until
 from .reference_sac import random_batch

@@ -9,9 +9,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common import protocol as P
+from silcr.common import protocol as P
 
-from deploy.monitor import StatsSnapshot
+from silcr.deploy.monitor import StatsSnapshot
 
 from .procs import Components, free_port, wait_until
 from .timing import print_table, write_json
@@ -25,7 +25,7 @@ def run(out_dir: Path, quick: bool = False, env_id: str = "Hopper-v5", actors: i
     port = free_port()
     runs_dir = tempfile.mkdtemp(prefix="silcr-bench-e2e-")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "common.cli", "train", "--run", run_name, "--runs-dir", runs_dir, "--env", env_id,
+        [sys.executable, "-m", "silcr.cli", "train", "--run", run_name, "--runs-dir", runs_dir, "--env", env_id,
          "--actors", str(actors), "--learning-starts", str(warmup), "--total-steps", str(warmup + updates),
          "--eval-episodes", "0", "--stats-interval", "0.5", "--zenoh-listen", f"tcp/127.0.0.1:{port}"],
         stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,

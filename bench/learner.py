@@ -7,7 +7,7 @@ from typing import Any
 
 import torch
 
-from learner.sac import Sac, SacHyper
+from silcr.learner.sac import Sac, SacHyper
 
 from .reference_sac import PlainSac, matmul_gflops, matmul_only_rate, random_batch, record_matmuls, update_flops
 from .timing import alternate, print_table, rate, write_json

@@ -13,7 +13,7 @@ from typing import Any, Callable
 
 import zenoh
 
-from common.zenoh_session import open_session, session_config
+from silcr.common.zenoh_session import open_session, session_config
 
 
 def free_port() -> int:
@@ -32,7 +32,7 @@ class Components:
     def start(self, *args: str) -> subprocess.Popen:
         log = open(self.dir / f"{len(self.procs)}-{args[0]}.log", "w")
         extra = ["--listen", self.endpoint] if args[0] == "router" else ["--connect", self.endpoint]
-        p = subprocess.Popen([sys.executable, "-m", "common.cli", *args, *extra], stdout=log, stderr=subprocess.STDOUT)
+        p = subprocess.Popen([sys.executable, "-m", "silcr.cli", *args, *extra], stdout=log, stderr=subprocess.STDOUT)
         self.procs.append(p)
         return p
 

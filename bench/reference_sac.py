@@ -15,7 +15,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from learner.sac import Actor, mlp
+from silcr.learner.sac import Actor, mlp
 
 
 class Critic(nn.Module):

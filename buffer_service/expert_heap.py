@@ -31,8 +31,8 @@ import itertools
 
 import numpy as np
 
-from common.config import EXPERT_ADMISSIONS
-from common.protocol import Episode
+from silcr.common.config import EXPERT_ADMISSIONS
+from silcr.common.protocol import Episode
 
 from .storage import EpisodeIndex, RowStorage, detach
 

@@ -14,7 +14,7 @@ from collections import deque
 
 import numpy as np
 
-from common.protocol import Episode
+from silcr.common.protocol import Episode
 
 from .storage import EpisodeIndex, RowStorage, detach
 

@@ -21,12 +21,12 @@ from pathlib import Path
 import numpy as np
 import zenoh
 
-from common import protocol as P
-from common.config import Config
-from common.demos import load_demos
-from common.envs import EnvSpec
-from common.lifecycle import StopFlag
-from common.zenoh_session import open_session, session_config
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.demos import load_demos
+from silcr.common.envs import EnvSpec
+from silcr.common.lifecycle import StopFlag
+from silcr.common.zenoh_session import open_session, session_config
 
 from .batches import compose_batches
 from .expert_heap import ExpertHeap

@@ -24,8 +24,8 @@ from typing import TYPE_CHECKING, Any, BinaryIO
 
 import msgpack
 
-from common import protocol as P
-from common.atomic_file import write_atomic
+from silcr.common import protocol as P
+from silcr.common.atomic_file import write_atomic
 
 if TYPE_CHECKING:
     from .service import ReplayState

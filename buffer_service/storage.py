@@ -17,7 +17,7 @@ import threading
 
 import numpy as np
 
-from common.protocol import Episode
+from silcr.common.protocol import Episode
 
 
 class RowStorage:

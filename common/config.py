@@ -1,7 +1,7 @@
 """Run configuration: one flat dataclass, filled from defaults, a TOML file, then the command line.
 
 Every option is declared once, here, with the roles (subcommands) that take it;
-`common.cli` builds each subcommand's parser from these declarations. Defaults are
+`silcr.cli` builds each subcommand's parser from these declarations. Defaults are
 the paper's Table I and the official code (see docs/algorithm.md for sources).
 """
 
@@ -18,8 +18,8 @@ from typing import Any, Mapping
 
 import tomli_w
 
-from common.envs import REWARD_MODES
-from common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
+from silcr.common.envs import REWARD_MODES
+from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
 
 ALGOS = ("silcr", "sac", "sqil")
 EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.expert_heap)

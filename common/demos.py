@@ -25,9 +25,9 @@ from pathlib import Path
 
 import numpy as np
 
-from common.atomic_file import write_atomic
-from common.envs import EnvSpec
-from common.protocol import Episode
+from silcr.common.atomic_file import write_atomic
+from silcr.common.envs import EnvSpec
+from silcr.common.protocol import Episode
 
 DEMOS_FORMAT = "silcr-demos"
 DEMOS_VERSION = 1

@@ -24,11 +24,11 @@ import time
 from pathlib import Path
 from typing import Any
 
-from common import protocol as P
-from common.config import Config
-from common.lifecycle import StopFlag, setup_logging
-from common.zenoh_session import open_session, session_config
-from deploy.monitor import StatsSnapshot
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.lifecycle import StopFlag, setup_logging
+from silcr.common.zenoh_session import open_session, session_config
+from silcr.deploy.monitor import StatsSnapshot
 
 log = logging.getLogger("train")
 
@@ -51,19 +51,19 @@ def component_main(role: str, cfg_dict: dict[str, Any], log_path: str) -> None:
     cfg = Config(**cfg_dict)
     try:
         if role == "router":
-            from deploy.router import run_router
+            from silcr.deploy.router import run_router
 
             code = run_router([cfg.zenoh_listen], [], cfg.zenoh_config, stop)
         elif role == "buffer":
-            from buffer_service.service import run_buffer
+            from silcr.buffer_service.service import run_buffer
 
             code = run_buffer(cfg, stop)
         elif role == "learner":
-            from learner.service import run_learner
+            from silcr.learner.service import run_learner
 
             code = run_learner(cfg, stop)
         else:
-            from actor.service import run_actor
+            from silcr.actor.service import run_actor
 
             code = run_actor(cfg, stop)
     except Exception:

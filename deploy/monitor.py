@@ -11,9 +11,9 @@ import threading
 import time
 from typing import Any
 
-from common import protocol as P
-from common.lifecycle import StopFlag
-from common.zenoh_session import open_session, session_config
+from silcr.common import protocol as P
+from silcr.common.lifecycle import StopFlag
+from silcr.common.zenoh_session import open_session, session_config
 
 
 class StatsSnapshot:

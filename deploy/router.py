@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import logging
 
-from common.lifecycle import StopFlag
-from common.zenoh_session import open_session, router_config
+from silcr.common.lifecycle import StopFlag
+from silcr.common.zenoh_session import open_session, router_config
 
 log = logging.getLogger("router")
 

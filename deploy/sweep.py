@@ -38,7 +38,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from common.config import FIELDS, ConfigError, option_name
+from silcr.common.config import FIELDS, ConfigError, option_name
 
 DONE_MARKER = "sweep-done.json"
 # Set per cell by the sweep itself, so an experiment file may not set them.
@@ -127,7 +127,7 @@ def cell_state(run_dir: Path) -> str:
 
 
 def _command(cell: Cell, runs_dir: Path, port: int, resume: bool) -> list[str]:
-    cmd = [sys.executable, "-m", "common.cli", "train", "--run", cell.name, "--runs-dir", str(runs_dir),
+    cmd = [sys.executable, "-m", "silcr.cli", "train", "--run", cell.name, "--runs-dir", str(runs_dir),
            "--seed", str(cell.seed), "--zenoh-listen", f"tcp/127.0.0.1:{port}"]
     for k, v in sorted(cell.options.items()):
         flag = option_name(k)
@@ -262,13 +262,13 @@ def run_sweep_cli(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
         parser.error(f"--shard {args.shard!r}: use K/N with 1 <= K <= N, e.g. 2/3")
     runs_dir = Path(args.runs_dir or exp.get("runs_dir") or Path("runs") / exp["name"])
     # Check every selected cell's options the way `silcr train` would, before starting any.
-    from common.cli import build_parser
-    from common.config import resolve
+    from silcr.cli import build_parser
+    from silcr.common.config import resolve
 
     train = build_parser()[1]["train"]
     problems: dict[str, list[str]] = {}  # one line per distinct problem, naming the cells it affects
     for cell in selected_cells(exp, seeds, args.only, (k, n)):
-        cmd = _command(cell, runs_dir, args.port_base, False)[3:]  # drop "python -m common.cli"
+        cmd = _command(cell, runs_dir, args.port_base, False)[3:]  # drop "python -m silcr.cli"
         try:
             with contextlib.redirect_stderr(io.StringIO()):  # argparse's own usage text; we report below
                 resolve(train.parse_args(cmd[1:]), "train")

@@ -11,7 +11,7 @@ from typing import Any
 
 import torch
 
-from common.atomic_file import write_atomic
+from silcr.common.atomic_file import write_atomic
 
 
 class CheckpointError(RuntimeError):

@@ -7,9 +7,9 @@ from pathlib import Path
 
 import numpy as np
 
-from actor.policy import NumpyPolicy
-from common import protocol as P
-from common.envs import EnvSpec, make_env
+from silcr.actor.policy import NumpyPolicy
+from silcr.common import protocol as P
+from silcr.common.envs import EnvSpec, make_env
 
 
 def rollout(env, policy: NumpyPolicy, spec: EnvSpec, seed: int, deterministic: bool = True,

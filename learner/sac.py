@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from common.config import TANH_LOG_PROB_FORMS
+from silcr.common.config import TANH_LOG_PROB_FORMS
 
 LOG_STD_MIN, LOG_STD_MAX = -20.0, 2.0
 LOG2 = float(np.log(2.0))

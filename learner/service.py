@@ -18,11 +18,11 @@ import numpy as np
 import torch
 import zenoh
 
-from common import protocol as P
-from common.config import Config
-from common.envs import EnvSpec
-from common.lifecycle import StopFlag
-from common.zenoh_session import open_session, session_config
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
+from silcr.common.lifecycle import StopFlag
+from silcr.common.zenoh_session import open_session, session_config
 
 from .checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import evaluate

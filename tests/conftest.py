@@ -3,7 +3,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from common.protocol import Episode
+from silcr.common.protocol import Episode
 
 
 def make_episode(length: int, ret: float = 0.0, obs_dim: int = 4, act_dim: int = 1, *, actor_id: int = 0,

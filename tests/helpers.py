@@ -69,7 +69,7 @@ class Processes:
     def start(self, name: str, *args: str, new_session: bool = False) -> subprocess.Popen:
         log = open(self.log_dir / f"{name}.log", "w")
         p = subprocess.Popen(
-            [sys.executable, "-m", "common.cli", *args],
+            [sys.executable, "-m", "silcr.cli", *args],
             stdout=log, stderr=subprocess.STDOUT, env=self.env(), cwd=REPO, start_new_session=new_session,
         )
         self.procs[name] = p

@@ -5,8 +5,8 @@ from __future__ import annotations
 import pytest
 import torch
 
-from bench.reference_sac import PlainSac, random_batch, update_flops
-from learner.sac import Sac, SacHyper
+from silcr.bench.reference_sac import PlainSac, random_batch, update_flops
+from silcr.learner.sac import Sac, SacHyper
 
 
 def _copy_into_plain(sac: Sac, plain: PlainSac) -> None:
@@ -53,9 +53,9 @@ def test_actor_reference_replays_the_actors_own_actions():
     """The raw-rate reference steps the env with the untrained actor's actions, not uniform ones."""
     import numpy as np
 
-    from actor.policy import NumpyPolicy, initial_weights
-    from bench.actor import policy_actions
-    from common.envs import EnvSpec
+    from silcr.actor.policy import NumpyPolicy, initial_weights
+    from silcr.bench.actor import policy_actions
+    from silcr.common.envs import EnvSpec
 
     spec = EnvSpec.of("Hopper-v5")
     actions = policy_actions("Hopper-v5", n=200, seed=0)
@@ -76,7 +76,7 @@ def test_actor_reference_replays_the_actors_own_actions():
 
 def test_recorded_matmuls_are_the_counted_flops():
     """The own-shape ceiling replays exactly the matmuls `update_flops` counts, and replays run."""
-    from bench.reference_sac import matmul_only_rate, record_matmuls
+    from silcr.bench.reference_sac import matmul_only_rate, record_matmuls
 
     sac = Sac(5, 2, [16, 8], SacHyper(), torch.device("cpu"))
     batch = random_batch(5, 2, 32, torch.device("cpu"))

@@ -5,11 +5,11 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from buffer_service import snapshot
-from buffer_service.service import ReplayState
-from common import protocol as P
-from common.config import Config
-from common.envs import EnvSpec
+from silcr.buffer_service import snapshot
+from silcr.buffer_service.service import ReplayState
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
 from tests.conftest import make_episode
 
 ENV = "InvertedPendulum-v5"

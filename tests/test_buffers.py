@@ -7,9 +7,9 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from buffer_service.batches import compose_batches
-from buffer_service.expert_heap import ExpertHeap
-from buffer_service.online_fifo import OnlineFifo
+from silcr.buffer_service.batches import compose_batches
+from silcr.buffer_service.expert_heap import ExpertHeap
+from silcr.buffer_service.online_fifo import OnlineFifo
 from tests.conftest import make_episode
 
 
@@ -194,10 +194,10 @@ def test_sac_batches_use_env_rewards_from_online_only():
 
 
 def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
-    from buffer_service.service import ReplayState
-    from common import protocol as P
-    from common.config import Config
-    from common.envs import EnvSpec
+    from silcr.buffer_service.service import ReplayState
+    from silcr.common import protocol as P
+    from silcr.common.config import Config
+    from silcr.common.envs import EnvSpec
 
     state = ReplayState(Config(run="t", env="InvertedPendulum-v5"), EnvSpec.of("InvertedPendulum-v5"))
     first = make_episode(5, ret=1.0, seq=0)

@@ -13,8 +13,8 @@ import subprocess
 import pytest
 import yaml
 
-from common.cli import build_parser
-from common.config import ConfigError, resolve
+from silcr.cli import build_parser
+from silcr.common.config import ConfigError, resolve
 from tests.helpers import REPO
 
 COMPOSE = REPO / "deploy" / "docker-compose.yml"

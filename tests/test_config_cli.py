@@ -8,8 +8,8 @@ import tomllib
 
 import pytest
 
-from common.cli import build_parser
-from common.config import Config, ConfigError, resolve
+from silcr.cli import build_parser
+from silcr.common.config import Config, ConfigError, resolve
 
 
 def _resolve(argv: list[str], role: str = "train") -> Config:
@@ -56,7 +56,7 @@ def test_bad_toml_is_a_config_error(tmp_path, text, needle):
 
 
 def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "common.cli", *args], capture_output=True, text=True, timeout=120)
+    return subprocess.run([sys.executable, "-m", "silcr.cli", *args], capture_output=True, text=True, timeout=120)
 
 
 @pytest.mark.parametrize(
@@ -97,7 +97,8 @@ def test_shipped_configs_load(name):
     assert cfg.algo == "silcr"
 
 
-@pytest.mark.parametrize("module", ["learner.sac", "actor.policy", "buffer_service.batches", "bench.reference_sac"])
+@pytest.mark.parametrize("module", ["silcr.learner.sac", "silcr.actor.policy", "silcr.buffer_service.batches",
+                                    "silcr.bench.reference_sac"])
 def test_thread_pool_defaults_apply_to_library_use(module):
     """Importing any component as a library sets the defaults before numpy or torch loads."""
     import os

@@ -8,11 +8,11 @@ import sys
 import numpy as np
 import pytest
 
-from buffer_service.service import ReplayState
-from common import protocol as P
-from common.config import Config
-from common.demos import DemosError, load_demos, save_demos
-from common.envs import EnvSpec
+from silcr.buffer_service.service import ReplayState
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.demos import DemosError, load_demos, save_demos
+from silcr.common.envs import EnvSpec
 from tests.conftest import make_episode
 from tests.helpers import REPO
 
@@ -99,8 +99,8 @@ def test_sqil_batches_are_half_online_at_0_and_half_demos_at_1(tmp_path, spec):
 def test_demos_command_records_a_checkpoint_and_sqil_accepts_it(tmp_path):
     import torch
 
-    from learner.checkpoint import save_checkpoint
-    from learner.sac import Sac, SacHyper
+    from silcr.learner.checkpoint import save_checkpoint
+    from silcr.learner.sac import Sac, SacHyper
 
     torch.manual_seed(0)
     sac = Sac(4, 1, [16], SacHyper(), torch.device("cpu"))
@@ -108,7 +108,7 @@ def test_demos_command_records_a_checkpoint_and_sqil_accepts_it(tmp_path):
     save_checkpoint(ckpt, {"sac": sac.state_dict(), "counters": {"policy_version": 3},
                            "config": Config(run="ck", env=ENV, hidden=[16]).to_dict()})
     out = tmp_path / "demos.npz"
-    r = subprocess.run([sys.executable, "-m", "common.cli", "demos", str(ckpt), "--episodes", "3", "-o", str(out)],
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "demos", str(ckpt), "--episodes", "3", "-o", str(out)],
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "wrote" in r.stdout and "3 episodes" in r.stdout
@@ -116,9 +116,9 @@ def test_demos_command_records_a_checkpoint_and_sqil_accepts_it(tmp_path):
     assert len(eps) == 3 and all(e.terminated or e.truncated for e in eps)
 
     # The buffer's option check loads the file: a wrong env is one line and exit code 2.
-    r = subprocess.run([sys.executable, "-m", "common.cli", "buffer", "--run", "x", "--env", "Hopper-v5", "--algo", "sqil",
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "buffer", "--run", "x", "--env", "Hopper-v5", "--algo", "sqil",
                         "--demos", str(out)], capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 2 and "--demos" in r.stderr and "InvertedPendulum-v5" in r.stderr and "Traceback" not in r.stderr
-    r = subprocess.run([sys.executable, "-m", "common.cli", "buffer", "--run", "x", "--env", ENV, "--algo", "sqil"],
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "buffer", "--run", "x", "--env", ENV, "--algo", "sqil"],
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 2 and "needs a demonstrations file" in r.stderr

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 from gymnasium.utils.env_checker import check_env
 
-from common.envs import PAPER_TASKS, EnvSpec, EpisodicReward, make_env
+from silcr.common.envs import PAPER_TASKS, EnvSpec, EpisodicReward, make_env
 
 
 def _rollout(env, seed=0, steps=None):

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import zenoh
 
-from common import protocol as P
+from silcr.common import protocol as P
 from tests.conftest import make_episode
 from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
 

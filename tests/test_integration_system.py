@@ -8,7 +8,7 @@ import signal
 import pytest
 import zenoh
 
-from common import protocol as P
+from silcr.common import protocol as P
 from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
 
 RUN = "itest-system"

@@ -18,7 +18,7 @@ import time
 
 import pytest
 
-from common import protocol as P
+from silcr.common import protocol as P
 from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, small_run_config, tagged_pids, wait_for
 
 def _ip(*args: str) -> None:
@@ -94,7 +94,7 @@ def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
     def start(name: str, ns: str, *args: str):
         log = open(tmp_path / f"{name}.log", "w")
         procs.procs[name] = subprocess.Popen(
-            ["ip", "netns", "exec", ns, sys.executable, "-m", "common.cli", *args],
+            ["ip", "netns", "exec", ns, sys.executable, "-m", "silcr.cli", *args],
             stdout=log, stderr=subprocess.STDOUT, env=procs.env(), cwd=REPO,
         )
 

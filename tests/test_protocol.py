@@ -8,7 +8,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from common import protocol as P
+from silcr.common import protocol as P
 from tests.conftest import make_episode
 
 CODEC = P.EpisodeCodec(obs_dim=4, act_dim=1, max_steps=1000, max_bytes=1 << 20)

@@ -6,7 +6,7 @@ import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from buffer_service.rate_limiter import SamplesPerInsertLimiter
+from silcr.buffer_service.rate_limiter import SamplesPerInsertLimiter
 
 
 def test_no_samples_during_warmup_then_one_update_per_step():

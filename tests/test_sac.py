@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 import torch
 
-from actor.policy import NumpyPolicy, initial_weights
-from common.protocol import Weights
-from learner.sac import Actor, Sac, SacHyper, TwinCritic, as_floats
+from silcr.actor.policy import NumpyPolicy, initial_weights
+from silcr.common.protocol import Weights
+from silcr.learner.sac import Actor, Sac, SacHyper, TwinCritic, as_floats
 
 
 def _sac(**hp) -> Sac:
@@ -183,7 +183,7 @@ def test_twin_critic_clips_each_critic_separately():
 
 def test_a_restored_state_continues_exactly_as_the_original(tmp_path):
     """Checkpoint round trip: networks, target critics, optimizer moments and alpha all come back."""
-    from learner.checkpoint import load_checkpoint, save_checkpoint
+    from silcr.learner.checkpoint import load_checkpoint, save_checkpoint
 
     a = _sac()
     for _ in range(3):

@@ -18,7 +18,7 @@ import time
 import pytest
 import zenoh
 
-from common import protocol as P
+from silcr.common import protocol as P
 from tests.helpers import REPO, LatestJson, Processes, free_port, small_run_config, tagged_pids, wait_for
 
 def _render(template: str, out, **values: str):

@@ -20,7 +20,7 @@ import time
 
 import pytest
 
-from common import protocol as P
+from silcr.common import protocol as P
 from tests.helpers import LatestJson, Processes, client_when_up, free_port, tagged_pids, wait_for
 
 SECONDS = float(os.environ.get("SILCR_SOAK_SECONDS", "600"))

@@ -11,8 +11,8 @@ from pathlib import Path
 
 import pytest
 
-from deploy.sweep import ExperimentError, cell_state, cells_of, load_experiment, parse_seeds
-from learner.checkpoint import load_checkpoint
+from silcr.deploy.sweep import ExperimentError, cell_state, cells_of, load_experiment, parse_seeds
+from silcr.learner.checkpoint import load_checkpoint
 from tests.helpers import REPO, Processes, free_port, tagged_pids, wait_for
 
 EXPERIMENTS = sorted((REPO / "experiments").glob("*.toml"))
@@ -58,7 +58,7 @@ def test_bad_experiment_files_are_one_line_errors(tmp_path, text, message):
     with pytest.raises(ExperimentError) as e:
         load_experiment(path)
     assert message in str(e.value)
-    r = subprocess.run([sys.executable, "-m", "common.cli", "sweep", str(path), "--dry-run"],
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "sweep", str(path), "--dry-run"],
                        capture_output=True, text=True, cwd=REPO, timeout=60)
     assert r.returncode == 2 and message in r.stderr and "Traceback" not in r.stderr
 
@@ -101,7 +101,7 @@ def test_an_interrupted_cell_resumes_from_its_checkpoint(tmp_path):
         assert stopped_at < 3400  # really midway
 
         # Without --resume a half-done cell stops the sweep before anything starts.
-        r = subprocess.run([sys.executable, "-m", "common.cli", *args], capture_output=True, text=True, cwd=REPO, timeout=120)
+        r = subprocess.run([sys.executable, "-m", "silcr.cli", *args], capture_output=True, text=True, cwd=REPO, timeout=120)
         assert r.returncode == 2 and "--resume" in r.stderr and "Traceback" not in r.stderr, r.stderr
         assert cell_state(cell_dir) == "partial"
 
@@ -122,7 +122,7 @@ def test_an_interrupted_cell_resumes_from_its_checkpoint(tmp_path):
     assert load_checkpoint(cell_dir / "checkpoints" / "learner.pt")["counters"]["updates"] < 4000 + 600
 
     # A third run finds the cell done and starts nothing.
-    r = subprocess.run([sys.executable, "-m", "common.cli", *args], capture_output=True, text=True, cwd=REPO, timeout=120)
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", *args], capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 0 and "1 done" in r.stdout and "start" not in r.stdout
     assert tagged_pids(procs.tag) == []
 
@@ -133,7 +133,7 @@ def test_invalid_cells_are_reported_together_and_a_dry_run_still_shows_the_plan(
                     '[variants.sqil]\nalgo = "sqil"\ndemos = "nowhere/{task}.npz"\n')
 
     def sweep(*extra):
-        return subprocess.run([sys.executable, "-m", "common.cli", "sweep", str(path), "--seeds", "0-1",
+        return subprocess.run([sys.executable, "-m", "silcr.cli", "sweep", str(path), "--seeds", "0-1",
                                "--runs-dir", str(tmp_path / "runs"), *extra],
                               capture_output=True, text=True, cwd=REPO, timeout=60)
 

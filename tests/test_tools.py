@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 import torch
 
-from common.config import Config
-from common.curves import load_run, plot, summary_markdown
-from learner.checkpoint import save_checkpoint
-from learner.sac import Sac, SacHyper
+from silcr.common.config import Config
+from silcr.plot import load_run, plot, summary_markdown
+from silcr.learner.checkpoint import save_checkpoint
+from silcr.learner.sac import Sac, SacHyper
 from tests.helpers import REPO
 
 
@@ -50,7 +50,7 @@ def test_plot_draws_one_panel_per_task_and_one_curve_per_algorithm(tmp_path):
 
 
 def test_plot_rejects_a_directory_that_is_not_a_run(tmp_path):
-    r = subprocess.run([sys.executable, "-m", "common.cli", "plot", str(tmp_path), "-o", str(tmp_path / "f.png")],
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", str(tmp_path), "-o", str(tmp_path / "f.png")],
                        capture_output=True, text=True, cwd=REPO, timeout=60)
     assert r.returncode == 2 and "not a run directory" in r.stderr and "Traceback" not in r.stderr
 
@@ -66,21 +66,21 @@ def checkpoint(tmp_path):
 
 
 def test_eval_reports_mean_and_std(checkpoint):
-    r = subprocess.run([sys.executable, "-m", "common.cli", "eval", str(checkpoint), "--episodes", "3"],
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "eval", str(checkpoint), "--episodes", "3"],
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "InvertedPendulum-v5, policy version 3: return" in r.stdout and "over 3 episodes" in r.stdout
 
 
 def test_eval_writes_a_video_when_a_renderer_exists(checkpoint, tmp_path):
-    from learner.evaluate import _render_env
+    from silcr.learner.evaluate import _render_env
 
     try:
         _render_env("InvertedPendulum-v5").close()
     except RuntimeError as e:
         pytest.skip(str(e))
     video = tmp_path / "ep.mp4"
-    r = subprocess.run([sys.executable, "-m", "common.cli", "eval", str(checkpoint), "--episodes", "1", "--video", str(video)],
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "eval", str(checkpoint), "--episodes", "1", "--video", str(video)],
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 0, r.stderr
     import imageio.v2 as imageio
@@ -92,12 +92,12 @@ def test_eval_writes_a_video_when_a_renderer_exists(checkpoint, tmp_path):
 def test_eval_rejects_a_corrupt_checkpoint(tmp_path):
     bad = tmp_path / "bad.pt"
     bad.write_bytes(b"not a checkpoint")
-    r = subprocess.run([sys.executable, "-m", "common.cli", "eval", str(bad)], capture_output=True, text=True, cwd=REPO, timeout=60)
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "eval", str(bad)], capture_output=True, text=True, cwd=REPO, timeout=60)
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
 
 
 def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
-    from common.config import Config
+    from silcr.common.config import Config
 
     specs = [("silcr", "episodic", 50_000), ("silcr", "episodic", 10_000), ("sac", "dense", 50_000), ("sqil", "episodic", 50_000)]
     labels = []

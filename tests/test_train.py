@@ -14,8 +14,8 @@ import tomllib
 
 import pytest
 
-from common import protocol as P
-from learner.checkpoint import load_checkpoint
+from silcr.common import protocol as P
+from silcr.learner.checkpoint import load_checkpoint
 from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, tagged_pids, wait_for
 
 SMALL = [
@@ -53,7 +53,7 @@ def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
             actor = wait_for(lambda: stats.get(keys.stats_actor(i)), 60, f"actor {i} stats")
             assert {"episodes", "steps", "policy_version"} <= actor.keys()
         mon = subprocess.run(
-            [sys.executable, "-m", "common.cli", "monitor", "--run", run, "--connect", f"tcp/127.0.0.1:{port}",
+            [sys.executable, "-m", "silcr.cli", "monitor", "--run", run, "--connect", f"tcp/127.0.0.1:{port}",
              "--once", "--json", "--timeout", "20"],
             capture_output=True, text=True, timeout=60, cwd=REPO,
         )
@@ -230,7 +230,7 @@ def test_router_port_in_use_is_a_clear_error(tmp_path):
         s.listen()
         port = s.getsockname()[1]
         r = subprocess.run(
-            [sys.executable, "-m", "common.cli", "train", "--run", "busy", "--runs-dir", str(tmp_path),
+            [sys.executable, "-m", "silcr.cli", "train", "--run", "busy", "--runs-dir", str(tmp_path),
              "--zenoh-listen", f"tcp/127.0.0.1:{port}"],
             capture_output=True, text=True, timeout=60, cwd=REPO,
         )

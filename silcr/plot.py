@@ -8,6 +8,7 @@ steps (up to the shortest run) and shown as the mean with a +-1 std band.
 
 from __future__ import annotations
 
+import argparse
 import csv
 import tomllib
 from collections import defaultdict
@@ -116,3 +117,21 @@ def summary_markdown(runs: list[RunCurve]) -> str:
                 f"{best.mean():.1f} ± {best.std():.1f} |"
             )
     return "\n".join(lines) + "\n"
+
+
+def plot_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
+    """`silcr plot RUN_DIR... -o fig.png [--table t.md]`."""
+    try:
+        runs = [load_run(Path(r)) for r in args.runs]
+    except ValueError as e:
+        parser.error(str(e))
+    out = Path(args.out)
+    if out.suffix not in (".png", ".svg", ".pdf"):
+        parser.error(f"-o {args.out}: use a .png, .svg or .pdf file name")
+    plot(runs, out, args.expert, args.title)
+    table = summary_markdown(runs)
+    print(table, end="")
+    if args.table:
+        Path(args.table).write_text(table)
+    print(f"wrote {out}" + (f" and {out.with_suffix('.svg')}" if out.suffix == ".png" else ""))
+    return 0

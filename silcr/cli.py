@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from common.config import ConfigError, Config, add_options, option_name, resolve
+from silcr.common.config import ConfigError, Config, add_options, option_name, resolve
 
 ROLES_HELP = {
     "train": "run router, buffer service, learner and actors locally until the step budget is spent",
@@ -97,10 +97,10 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
 
 def _check_runtime_options(cfg: Config, role: str) -> None:
     """Options that can only be checked by trying them: the env id and the Zenoh endpoints."""
-    from common.zenoh_session import session_config
+    from silcr.common.zenoh_session import session_config
 
     if role != "monitor":
-        from common.envs import EnvSpec
+        from silcr.common.envs import EnvSpec
 
         try:
             spec = EnvSpec.of(cfg.env)
@@ -109,7 +109,7 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
         if cfg.demos and role in ("train", "buffer"):
             from pathlib import Path
 
-            from common.demos import DemosError, load_demos
+            from silcr.common.demos import DemosError, load_demos
 
             try:
                 load_demos(Path(cfg.demos), spec)
@@ -129,27 +129,29 @@ def main(argv: list[str] | None = None) -> int:
         parser.print_help()
         return 2
 
-    from common.lifecycle import StopFlag, setup_logging
+    from silcr.common.lifecycle import StopFlag, setup_logging
 
     if role == "plot":
-        return _plot(args, subs[role])
-    if role == "eval":
-        return _eval(args, subs[role])
-    if role == "demos":
-        return _demos(args, subs[role])
+        from silcr.plot import plot_command
+
+        return plot_command(args, subs[role])
+    if role in ("eval", "demos"):
+        from silcr import policy_commands
+
+        return (policy_commands.eval_command if role == "eval" else policy_commands.demos_command)(args, subs[role])
     if role == "sweep":
-        from deploy.sweep import run_sweep_cli
+        from silcr.deploy.sweep import run_sweep_cli
 
         return run_sweep_cli(args, subs[role])
     if role == "bench":
         from pathlib import Path
 
-        from bench.cli import run_bench
+        from silcr.bench.cli import run_bench
 
         return run_bench(args.which, Path(args.out), args.device, args.quick)
     if role == "router":
         setup_logging("router")
-        from deploy.router import run_router
+        from silcr.deploy.router import run_router
 
         try:
             return run_router(args.listen, args.connect, args.zenoh_config, StopFlag().install_signal_handlers())
@@ -160,7 +162,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = resolve(args, role)
         _check_runtime_options(cfg, role)
         if role == "learner" and cfg.device == "cuda":
-            from learner.service import pick_device
+            from silcr.learner.service import pick_device
 
             try:
                 pick_device("cuda")
@@ -170,12 +172,12 @@ def main(argv: list[str] | None = None) -> int:
         subs[role].error(str(e))
 
     if role == "train":
-        from deploy.local import run_train
+        from silcr.deploy.local import run_train
 
         return run_train(cfg)
     stop = StopFlag().install_signal_handlers()
     if role == "monitor":
-        from deploy.monitor import run_monitor
+        from silcr.deploy.monitor import run_monitor
 
         return run_monitor(cfg.run, cfg.connect, cfg.zenoh_mode, cfg.zenoh_config, args.once, args.json, args.timeout, stop)
     if role == "actor" and cfg.actor_id == -1:
@@ -184,99 +186,16 @@ def main(argv: list[str] | None = None) -> int:
         cfg.actor_id = secrets.randbelow(2**31)  # distinct seeds and stats keys for identical replicas
     setup_logging(role if role != "actor" else f"actor-{cfg.actor_id}")
     if role == "buffer":
-        from buffer_service.service import run_buffer
+        from silcr.buffer_service.service import run_buffer
 
         return run_buffer(cfg, stop)
     if role == "learner":
-        from learner.service import run_learner
+        from silcr.learner.service import run_learner
 
         return run_learner(cfg, stop)
-    from actor.service import run_actor
+    from silcr.actor.service import run_actor
 
     return run_actor(cfg, stop)
-
-
-def _plot(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    from pathlib import Path
-
-    from common.curves import load_run, plot, summary_markdown
-
-    try:
-        runs = [load_run(Path(r)) for r in args.runs]
-    except ValueError as e:
-        parser.error(str(e))
-    out = Path(args.out)
-    if out.suffix not in (".png", ".svg", ".pdf"):
-        parser.error(f"-o {args.out}: use a .png, .svg or .pdf file name")
-    plot(runs, out, args.expert, args.title)
-    table = summary_markdown(runs)
-    print(table, end="")
-    if args.table:
-        Path(args.table).write_text(table)
-    print(f"wrote {out}" + (f" and {out.with_suffix('.svg')}" if out.suffix == ".png" else ""))
-    return 0
-
-
-def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentParser):
-    """The checked `--episodes` and the actor weights and env id of `args.checkpoint` (exit 2 if unusable)."""
-    from pathlib import Path
-
-    from learner.checkpoint import CheckpointError, load_checkpoint
-    from learner.evaluate import weights_from_checkpoint
-
-    if args.episodes < 1:
-        parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    try:
-        payload = load_checkpoint(Path(args.checkpoint))
-    except CheckpointError as e:
-        parser.error(str(e))
-    return weights_from_checkpoint(payload)
-
-
-def _eval(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    from pathlib import Path
-
-    weights, env_id = _policy_from_checkpoint(args, parser)
-    from common.envs import EnvSpec
-    from learner.evaluate import evaluate
-
-    try:
-        mean, std, length = evaluate(weights, EnvSpec.of(env_id), args.episodes, args.seed,
-                                     Path(args.video) if args.video else None)
-    except RuntimeError as e:
-        print(f"silcr eval: error: {e}", file=sys.stderr)
-        return 1
-    print(f"{env_id}, policy version {weights.version}: return {mean:.1f} ± {std:.1f} over {args.episodes} "
-          f"episodes (mean length {length:.0f})" + (f"; video: {args.video}" if args.video else ""))
-    return 0
-
-
-def _demos(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    from pathlib import Path
-
-    import numpy as np
-
-    out = Path(args.out)
-    if out.suffix != ".npz":
-        parser.error(f"-o {args.out}: the demonstrations file must end in .npz")
-    weights, env_id = _policy_from_checkpoint(args, parser)
-    from common.demos import save_demos
-    from common.envs import EnvSpec
-    from learner.evaluate import record_demos
-
-    spec = EnvSpec.of(env_id)
-    print(f"recording {args.episodes} episodes of {env_id}, policy version {weights.version} "
-          f"({'stochastic' if args.stochastic else 'deterministic'})", flush=True)
-
-    def show(ep) -> None:
-        print(f"  episode: return {ep.episode_return:9.1f}, length {ep.length}", flush=True)
-
-    eps = record_demos(weights, spec, args.episodes, args.seed, not args.stochastic, show)
-    save_demos(out, env_id, eps)
-    returns = [e.episode_return for e in eps]
-    print(f"wrote {out}: {len(eps)} episodes, {sum(e.length for e in eps)} transitions, "
-          f"return {np.mean(returns):.1f} ± {np.std(returns):.1f}")
-    return 0
 
 
 if __name__ == "__main__":
