@@ -31,6 +31,8 @@ class NumpyPolicy:
             raise ProtocolError("bad_field", f"weights lack {e.args[0]!r}") from None
         if not layers:
             raise ProtocolError("bad_field", "weights have no hidden layers")
+        if any(w.ndim != 2 or b.ndim != 1 for w, b in [*layers, self.mean, self.log_std]):
+            raise ProtocolError("bad_shape", "weights need 2-D matrices and 1-D biases")
         if layers[0][0].shape[0] != obs_dim or self.mean[0].shape[1] != act_dim:
             raise ProtocolError(
                 "bad_shape",
@@ -39,6 +41,10 @@ class NumpyPolicy:
         for (w, b), (w2, _) in zip(layers, layers[1:] + [self.mean]):
             if w.shape[1] != b.shape[0] or w.shape[1] != w2.shape[0]:
                 raise ProtocolError("bad_shape", "weights' layer shapes do not chain")
+        for name, (w, b) in (("mean", self.mean), ("log_std", self.log_std)):
+            if w.shape != self.mean[0].shape or b.shape != (act_dim,):
+                raise ProtocolError("bad_shape", f"the {name} head is {w.shape[0]} -> {w.shape[1]} with {b.shape[0]} biases, "
+                                                 f"expected {self.mean[0].shape[0]} -> {act_dim}")
         self.layers = layers
         # Both heads in one matmul: one BLAS call fewer per step, and the heads' output
         # is a single array the sampling below works on in place.

@@ -13,6 +13,11 @@ from .expert_heap import ExpertHeap
 from .online_fifo import OnlineFifo
 
 
+def online_rows(batch_size: int, mixed: bool) -> int:
+    """Rows of each batch drawn from D_O (the first ones); the rest, if `mixed`, come from D_E."""
+    return batch_size - (batch_size // 2 if mixed else 0)
+
+
 def compose_batches(
     fifo: OnlineFifo,
     heap: ExpertHeap | None,
@@ -37,8 +42,8 @@ def compose_batches(
         "truncated": np.empty(n, np.uint8),
         "policy_version": np.empty(n, np.int64),
     }
-    n_expert = batch_size // 2 if heap is not None else 0
-    n_online = batch_size - n_expert
+    n_online = online_rows(batch_size, heap is not None)
+    n_expert = batch_size - n_online
     if n_expert == 0:
         fifo.gather(n, rng, out, slice(0, n), not constant_rewards)
     else:

@@ -66,6 +66,13 @@ class SamplesPerInsertLimiter:
             return 0
         return max(0, math.floor(self.error - (self.centre - self.tolerance)))
 
+    def due(self) -> int:
+        """How many samples bring the error back to the window's centre: the updates the inserts so far
+        are due at exactly `samples_per_insert`, never ahead (the single-process loop takes these)."""
+        if self.warming_up():
+            return 0
+        return max(0, math.floor(self.error - self.centre))
+
     def record_sample(self, n: int) -> None:
         self.samples += n
 

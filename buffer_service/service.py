@@ -22,13 +22,14 @@ import numpy as np
 import zenoh
 
 from silcr.common import protocol as P
+from silcr.common.clients import StatsPublisher, Throttle, stop_on_shutdown
 from silcr.common.config import Config
 from silcr.common.demos import load_demos
 from silcr.common.envs import EnvSpec
 from silcr.common.lifecycle import StopFlag
 from silcr.common.zenoh_session import open_session, session_config
 
-from .batches import compose_batches
+from .batches import compose_batches, online_rows
 from .expert_heap import ExpertHeap
 from .online_fifo import OnlineFifo
 from . import snapshot
@@ -78,14 +79,20 @@ class ReplayState:
         """Store one episode message; raise `ProtocolError` (and count it) if it is rejected."""
         try:
             ep = self.codec.decode(payload)
-            sender = (ep.actor_id, ep.incarnation)
-            if ep.seq <= self.last_seq.get(sender, -1):
-                raise P.ProtocolError(
-                    "duplicate", f"actor {ep.actor_id} (incarnation {ep.incarnation}) sent seq {ep.seq} again"
-                )
         except P.ProtocolError as e:
             self.rejections[e.reason] += 1
             raise
+        self.store(ep)
+        return ep
+
+    def store(self, ep: P.Episode) -> None:
+        """Store a decoded episode (an in-process actor's, or a message's); a repeated one is rejected and counted."""
+        sender = (ep.actor_id, ep.incarnation)
+        if ep.seq <= self.last_seq.get(sender, -1):
+            self.rejections["duplicate"] += 1
+            raise P.ProtocolError(
+                "duplicate", f"actor {ep.actor_id} (incarnation {ep.incarnation}) sent seq {ep.seq} again"
+            )
         if len(self.last_seq) >= 65_536:  # bound the table: forget the oldest senders
             del self.last_seq[next(iter(self.last_seq))]
         self.last_seq[sender] = ep.seq
@@ -96,7 +103,6 @@ class ReplayState:
         self.episodes_received += 1
         self.transitions_received += ep.length
         self.last_episode_version = max(self.last_episode_version, ep.policy_version)
-        return ep
 
     # -- batches ----------------------------------------------------------------
     def meta(self) -> dict[str, Any]:
@@ -113,18 +119,28 @@ class ReplayState:
 
     def answer(self, payload: bytes | None) -> P.BatchReply:
         """Answer one sample query; raise `ProtocolError` for a malformed request."""
-        self.sample_requests += 1
         try:
             if payload is None:
                 raise P.ProtocolError("bad_request", "sample query carries no payload")
             req = P.SampleRequest.decode(payload)
         except P.ProtocolError:
+            self.sample_requests += 1
             self.sample_requests_rejected += 1
             raise
+        return self.sample(req)
+
+    def sample(self, req: P.SampleRequest, keep_ratio: bool = False) -> P.BatchReply:
+        """Up to `req.batches` mixed batches, as many as the rate limiter allows now.
+
+        Over the network the learner may run up to the limiter's tolerance ahead of
+        the ratio (so it never waits on a round trip); `keep_ratio` serves only the
+        updates the inserted transitions are due, as the single-process loop wants.
+        """
+        self.sample_requests += 1
         if self.limiter.warming_up() or (self.heap is not None and self.heap.num_episodes == 0):
             self.not_ready_replies += 1
             return P.BatchReply("not_ready", self.meta(), reason="warmup", retry_after_ms=200)
-        k = min(req.batches, self.limiter.available())
+        k = min(req.batches, self.limiter.due() if keep_ratio else self.limiter.available())
         if k == 0:
             self.not_ready_replies += 1
             return P.BatchReply("not_ready", self.meta(), reason="rate_limited", retry_after_ms=20)
@@ -133,7 +149,9 @@ class ReplayState:
         )
         self.limiter.record_sample(k)
         self.batches_served += k
-        return P.BatchReply("ok", self.meta() | {"batches": k, "batch_size": req.batch_size}, arrays)
+        meta = self.meta() | {"batches": k, "batch_size": req.batch_size,
+                              "online_rows": online_rows(req.batch_size, self.heap is not None)}
+        return P.BatchReply("ok", meta, arrays)
 
     # -- stats ------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
@@ -268,7 +286,7 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
     with open_session(conf) as session:
         session.declare_subscriber(keys.episodes, lambda s: inbox.put_episode(s.payload.to_bytes()))
         session.declare_queryable(keys.sample, inbox.put_query)
-        session.declare_subscriber(keys.control_shutdown, lambda s: stop.set("shutdown message"))
+        stop_on_shutdown(session, keys, stop)
         actors_alive: set[str] = set()
 
         def on_alive(sample: zenoh.Sample) -> None:
@@ -282,15 +300,8 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
 
         session.liveliness().declare_subscriber(keys.alive_actors, on_alive, history=True)
         token = session.liveliness().declare_token(keys.alive("buffer"))
-        stats_pub = session.declare_publisher(
-            keys.stats_buffer,
-            encoding=zenoh.Encoding.APPLICATION_JSON,
-            congestion_control=zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.DATA_LOW,
-        )
-        throttle_pub = session.declare_publisher(
-            keys.control_throttle, congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA_HIGH
-        )
+        stats_pub = StatsPublisher(session, keys.stats_buffer)
+        throttle = Throttle(session, keys)
         paused = False
         next_stats = time.monotonic()
         interval = cfg.buffer_checkpoint_interval
@@ -309,7 +320,7 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
             now_paused = state.limiter.inserts_paused()
             now = time.monotonic()
             if now_paused != paused or now >= next_stats:
-                throttle_pub.put(P.encode_control("throttle", paused=now_paused))
+                throttle.send(now_paused)
                 paused = now_paused
             if now >= next_checkpoint:
                 writer.submit(snapshot.take(state))
@@ -330,7 +341,7 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
                     "checkpoint_transitions": writer.last_transitions,
                     "checkpoint_age_s": time.time() - writer.last_written_at if writer.last_written_at else None,
                 } | restored
-                stats_pub.put(P.encode_stats(stats))
+                stats_pub.put(stats)
                 next_stats = now + cfg.stats_interval
         for q in inbox.close():
             with q:

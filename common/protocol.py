@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import re
 from dataclasses import dataclass, field
 from typing import Any, Mapping
@@ -312,6 +313,18 @@ class Weights:
     arch: dict[str, Any] = field(default_factory=dict)
     #: wall-clock time of publication (seconds since the epoch), for latency stats
     sent_at: float = 0.0
+    #: random id of the learner process that published them: a learner restarted from an
+    #: older checkpoint (or none) counts versions again from there, and actors must follow it
+    incarnation: int = 0
+
+    def supersedes(self, current: "Weights | None") -> bool:
+        """The actors' rule: take weights that are newer than `current` or come from another learner incarnation."""
+        return current is None or self.incarnation != current.incarnation or self.version > current.version
+
+
+def new_incarnation() -> int:
+    """A random id for a process whose counters start again when it restarts (actors, learners)."""
+    return int.from_bytes(os.urandom(7), "little")
 
 
 def encode_weights(w: Weights) -> bytes:
@@ -320,6 +333,7 @@ def encode_weights(w: Weights) -> bytes:
             "v": SCHEMA_VERSION,
             "kind": "weights",
             "version": int(w.version),
+            "incarnation": int(w.incarnation),
             "sent_at": float(w.sent_at),
             "arch": dict(w.arch),
             "params": {k: pack_array(np.asarray(a, dtype="<f4")) for k, a in w.params.items()},
@@ -340,7 +354,10 @@ def decode_weights(payload: bytes) -> Weights:
         if not np.isfinite(a).all():
             raise ProtocolError("non_finite", f"weights {k!r} contain NaN or infinite values")
     sent_at = msg.get("sent_at", 0.0)
-    return Weights(version, params, arch, float(sent_at) if isinstance(sent_at, (int, float)) else 0.0)
+    incarnation = msg.get("incarnation", 0)  # absent from weights of learners before 0.2
+    if not isinstance(incarnation, int) or isinstance(incarnation, bool) or not 0 <= incarnation < 2**63:
+        raise ProtocolError("bad_field", "field 'incarnation' must be an int in [0, 2**63)")
+    return Weights(version, params, arch, float(sent_at) if isinstance(sent_at, (int, float)) else 0.0, incarnation)
 
 
 # ---------------------------------------------------------------------------

@@ -19,12 +19,12 @@ import os
 import signal
 import socket
 import sys
-import threading
 import time
 from pathlib import Path
 from typing import Any
 
 from silcr.common import protocol as P
+from silcr.common.clients import Shutdown
 from silcr.common.config import Config
 from silcr.common.lifecycle import StopFlag, setup_logging
 from silcr.common.zenoh_session import open_session, session_config
@@ -184,7 +184,7 @@ def run_train(cfg: Config) -> int:
             session.declare_subscriber(keys.stats_buffer, stats.on_sample)
             code = _watch(run, cfg, stats)
             if code == 0:
-                session.put(keys.control_shutdown, P.encode_control("shutdown", reason="finished"))
+                Shutdown(session, keys).announce("finished")
     except KeyboardInterrupt:
         interrupted = True
         print("\nsilcr train: interrupted; stopping all components (Ctrl-C again to force)", file=sys.stderr)

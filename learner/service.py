@@ -1,9 +1,13 @@
 """The learner: pull mixed batches, update SAC, push weights, evaluate, record, checkpoint.
 
-Several sample queries stay in flight (each for `batches_per_request` batches),
-so while one batch trains the next ones are already crossing the network. The
-buffer's rate limiter decides when a batch may be taken; a `not_ready` reply
-just means "wait a moment", never an error.
+`Learner` is the bookkeeping around `Sac`: `step(batch)` trains on one reply's
+batches and keeps the counters, the weights schedule, checkpoints and the
+evaluation schedule; it needs no network (tests drive it directly, and
+`silcr train --single-process` drives it with in-process clients).
+`run_learner` is the process over Zenoh: a loop over a `ZenohBatchStream`
+(several sample queries in flight; not-ready replies, retries and buffer restarts
+handled there) that publishes weights through a `ZenohWeightsServer` and stats on
+the learner's stats key.
 """
 
 from __future__ import annotations
@@ -11,14 +15,15 @@ from __future__ import annotations
 import collections
 import logging
 import time
-from pathlib import Path
+import warnings
 from typing import Any
 
 import numpy as np
 import torch
-import zenoh
 
 from silcr.common import protocol as P
+from silcr.common.clients import (Shutdown, StatsPublisher, WeightsServer, ZenohBatchStream, ZenohWeightsServer,
+                                  stop_on_shutdown)
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.lifecycle import StopFlag
@@ -31,8 +36,6 @@ from .sac import Sac, SacHyper, as_floats
 
 log = logging.getLogger("learner")
 
-QUERY_TIMEOUT_S = 10.0
-
 
 def pick_device(name: str) -> torch.device:
     if name == "auto":
@@ -42,9 +45,30 @@ def pick_device(name: str) -> torch.device:
     return torch.device(name)
 
 
+def batch_tensors(arrays: dict[str, np.ndarray], device: torch.device) -> dict[str, torch.Tensor]:
+    """A reply's arrays as tensors on `device`, with no copy on a CPU.
+
+    Arrays decoded from a message are read-only views of it (zero-copy), and torch
+    warns about tensors over read-only memory because writing to them would be
+    undefined. The update only reads its batch (the flags become new float tensors),
+    so that one warning is silenced here instead of paying for a copy of every batch.
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="The given NumPy array is not writable", category=UserWarning)
+        return {k: torch.from_numpy(v).to(device, non_blocking=True) for k, v in arrays.items() if k != "policy_version"}
+
+
+def _mean_lag(current: int, versions: np.ndarray) -> float | None:
+    known = versions[versions >= 0]  # -1: acted before any learner weights arrived
+    return float(current - known.mean()) if known.size else None
+
+
 class Learner:
-    def __init__(self, cfg: Config, spec: EnvSpec) -> None:
+    """SAC plus everything a run keeps around it: counters, weights, evaluations, records, checkpoints."""
+
+    def __init__(self, cfg: Config, spec: EnvSpec, weights: WeightsServer) -> None:
         self.cfg, self.spec = cfg, spec
+        self.weights_server = weights
         self.device = pick_device(cfg.device)
         if cfg.torch_threads:
             torch.set_num_threads(cfg.torch_threads)
@@ -52,6 +76,7 @@ class Learner:
         hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
                       cfg.tanh_log_prob)
         self.sac = Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
+        self.incarnation = P.new_incarnation()
         self.updates = 0
         self.policy_version = 0
         self.env_steps = 0
@@ -66,6 +91,14 @@ class Learner:
             self._restore(load_checkpoint(self.checkpoint_path))
         elif cfg.resume:
             log.info("--resume: no checkpoint at %s yet; starting fresh", self.checkpoint_path)
+        self.next_checkpoint = (self.updates // cfg.checkpoint_interval + 1) * cfg.checkpoint_interval
+        cfg.run_dir.mkdir(parents=True, exist_ok=True)
+        self.progress = ProgressLog(cfg.run_dir, resume=self.resumed)
+        self.started = time.monotonic()
+        self.update_time = 0.0
+        self.buffer_meta: dict[str, Any] = {}  # the latest reply's description of the buffer (D_E's returns)
+        self.policy_lag: collections.deque[float] = collections.deque(maxlen=200)  # D_O rows only
+        self.expert_age: collections.deque[float] = collections.deque(maxlen=200)  # D_E rows
         self._last_stats: dict[str, torch.Tensor] = {}
 
     # -- checkpoints -------------------------------------------------------------
@@ -93,13 +126,82 @@ class Learner:
         save_checkpoint(self.checkpoint_path, {"sac": self.sac.state_dict(), "counters": self.counters(), "config": self.cfg.to_dict()})
         log.info("checkpoint at %d updates written in %.2fs", self.updates, time.monotonic() - t0)
 
-    # -- training ------------------------------------------------------------------
+    # -- weights and evaluation -----------------------------------------------------
     def weights(self) -> P.Weights:
-        return P.Weights(self.policy_version, self.sac.actor_arrays(), self.sac.arch(), sent_at=time.time())
+        return P.Weights(self.policy_version, self.sac.actor_arrays(), self.sac.arch(), sent_at=time.time(),
+                         incarnation=self.incarnation)
+
+    def publish_weights(self) -> None:
+        self.weights_server.publish(self.weights())
+
+    def evaluate(self) -> None:
+        """Evaluate the deterministic policy and write a progress row."""
+        if self.cfg.eval_episodes == 0:
+            return
+        t0 = time.monotonic()
+        mean, std, length = evaluate(self.weights(), self.spec, self.cfg.eval_episodes,
+                                     self.cfg.seed + 1_000_000 + 1_000 * self.evals)
+        self.evals += 1
+        self.last_eval_return = mean
+        elapsed = time.monotonic() - self.started
+        losses = self.last_losses
+        self.progress.row(
+            {
+                "time": round(elapsed, 3),
+                "env_steps": self.env_steps,
+                "updates": self.updates,
+                "policy_version": self.policy_version,
+                "eval_return": mean,
+                "eval_return_std": std,
+                "eval_length": length,
+                "alpha": self.sac.alpha,
+                "critic_loss": losses.get("critic_loss", float("nan")),
+                "actor_loss": losses.get("actor_loss", float("nan")),
+                "updates_per_s": self.updates / max(elapsed, 1e-9),
+                **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS},
+                **{k: self.buffer_meta.get(k) for k in EXPERT_COLUMNS},
+            }
+        )
+        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f, %.1fs)",
+                 self.env_steps, self.updates, mean, std, length, time.monotonic() - t0)
+
+    def start(self) -> None:
+        """Publish the first weights and, on a fresh start, evaluate the untrained policy (every curve's baseline)."""
+        self.publish_weights()
+        if not self.resumed:
+            self.evaluate()
+            self.next_eval = self.cfg.eval_interval
+
+    # -- training ------------------------------------------------------------------
+    def see(self, meta: dict[str, Any]) -> None:
+        """Take in a reply's description of the buffer (any reply: a not-ready one too)."""
+        self.env_steps = max(self.env_steps, int(meta.get("env_steps", 0)))
+        if "expert_transitions" in meta:
+            self.buffer_meta = meta
+
+    def step(self, batch: P.BatchReply) -> None:
+        """Train on one `ok` reply (`meta["batches"]` updates) and publish weights and checkpoint when due."""
+        self.see(batch.meta)
+        n, size = int(batch.meta["batches"]), int(batch.meta["batch_size"])
+        versions = batch.arrays["policy_version"].reshape(n, size)
+        online = int(batch.meta.get("online_rows", size))  # rows of each batch from D_O; the rest are D_E's
+        lag = _mean_lag(self.policy_version, versions[:, :online])
+        if lag is not None:
+            self.policy_lag.append(lag)
+        if online < size and (age := _mean_lag(self.policy_version, versions[:, online:])) is not None:
+            self.expert_age.append(age)
+        t0 = time.monotonic()
+        self.train_on(batch.arrays, n, size)
+        self.update_time += time.monotonic() - t0
+        if self.updates // self.cfg.weights_interval != (self.updates - n) // self.cfg.weights_interval:
+            self.policy_version += 1
+            self.publish_weights()
+        if self.updates >= self.next_checkpoint:
+            self.checkpoint()
+            self.next_checkpoint = (self.updates // self.cfg.checkpoint_interval + 1) * self.cfg.checkpoint_interval
 
     def train_on(self, arrays: dict[str, np.ndarray], batches: int, batch_size: int) -> None:
-        dev = self.device
-        t = {k: torch.from_numpy(np.ascontiguousarray(v)).to(dev, non_blocking=True) for k, v in arrays.items() if k != "policy_version"}
+        t = batch_tensors(arrays, self.device)
         term = t["terminated"].float()
         trunc = t["truncated"].float()
         for b in range(batches):
@@ -107,210 +209,100 @@ class Learner:
             self._last_stats = self.sac.update(t["obs"][s], t["actions"][s], t["rewards"][s], t["next_obs"][s], term[s], trunc[s])
             self.updates += 1
 
-    @property
-    def last_losses(self) -> dict[str, float]:
-        """The last update's statistics and the divergence count; reading them waits for the device, so only when reporting."""
-        out = as_floats(self._last_stats)
-        out["q_bound_exceeded"] = int(self.sac.q_bound_exceeded)
-        return out
+    def poll(self) -> None:
+        """Evaluate when the environment-step schedule says so."""
+        if self.env_steps >= self.next_eval:
+            self.evaluate()
+            self.next_eval = (self.env_steps // self.cfg.eval_interval + 1) * self.cfg.eval_interval
 
     def target_updates(self) -> int:
         return int(max(0, self.cfg.total_steps - self.cfg.learning_starts) * self.cfg.samples_per_insert)
 
+    def done(self, starved: bool) -> bool:
+        """The budget is spent: every step collected and trained on, or nothing more to be had (`starved`)."""
+        return self.env_steps >= self.cfg.total_steps and (self.updates >= self.target_updates() or starved)
+
+    def finish(self, finished: bool) -> None:
+        """Last weights and evaluation if the run finished, a checkpoint either way, then close the records."""
+        if finished:
+            self.policy_version += 1
+            self.publish_weights()
+            self.evaluate()
+            log.info("finished: %d env steps, %d updates, last eval return %s", self.env_steps, self.updates,
+                     self.last_eval_return)
+        self.checkpoint()
+        self.progress.close()
+
+    # -- reporting -------------------------------------------------------------------
+    @property
+    def last_losses(self) -> dict[str, float]:
+        """The last update's statistics and the divergence count; reading them waits for the device, so only when reporting."""
+        out: dict[str, float] = as_floats(self._last_stats)
+        out["q_bound_exceeded"] = int(self.sac.q_bound_exceeded)
+        return out
+
+    def stats(self) -> dict[str, Any]:
+        """The learner's stats message (the batch stream adds its own counters)."""
+        elapsed = time.monotonic() - self.started
+        losses = self.last_losses
+        return {
+            "time": time.time(),
+            "updates": self.updates,
+            "policy_version": self.policy_version,
+            "env_steps": self.env_steps,
+            "total_steps": self.cfg.total_steps,
+            "last_eval_return": self.last_eval_return,
+            "updates_per_s": self.updates / max(elapsed, 1e-9),
+            "duty_cycle": self.update_time / max(elapsed, 1e-9),
+            "policy_lag_mean": float(np.mean(self.policy_lag)) if self.policy_lag else None,
+            "expert_age_mean": float(np.mean(self.expert_age)) if self.expert_age else None,
+            "device": str(self.device),
+        } | {k: P.finite_or_none(v) for k, v in losses.items()} | {"q_bound_exceeded": losses["q_bound_exceeded"]}
+
+    def record_scalars(self, stats: dict[str, Any]) -> None:
+        """The training statistics as TensorBoard scalars at the current env step."""
+        if self.updates:
+            keys = [*as_floats(self._last_stats), "q_bound_exceeded", "updates_per_s"]
+            self.progress.scalars({f"train/{k}": stats[k] for k in keys if stats.get(k) is not None}, self.env_steps)
+
 
 def run_learner(cfg: Config, stop: StopFlag) -> int:
     spec = EnvSpec.of(cfg.env)
-    lrn = Learner(cfg, spec)
     keys = P.Keys(cfg.run)
-    cfg.run_dir.mkdir(parents=True, exist_ok=True)
-    progress = ProgressLog(cfg.run_dir, resume=lrn.resumed)
-    log.info(
-        "learner for run %s on %s: %s, networks %s, batch %d, %d env steps",
-        cfg.run, lrn.device, cfg.algo, cfg.hidden, cfg.batch_size, cfg.total_steps,
-    )
-    request = P.SampleRequest(cfg.batches_per_request, cfg.batch_size).encode()
     conf = session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
-    finished = False
-    start = time.monotonic()
-    wait_times: collections.deque[float] = collections.deque(maxlen=2000)
-    policy_lag: collections.deque[float] = collections.deque(maxlen=200)
-    update_time = 0.0
-    sample_errors = 0
-    not_ready = 0
-    buffer_meta: dict[str, Any] = {}  # the latest batch reply's description of the buffer (D_E's returns)
     with open_session(conf) as session:
-        latest = {"payload": P.encode_weights(lrn.weights())}
-
-        def answer_weights(query: zenoh.Query) -> None:
-            with query:
-                query.reply(keys.weights, latest["payload"])
-
-        session.declare_queryable(keys.weights, answer_weights)
-        session.declare_subscriber(keys.control_shutdown, lambda s: stop.set("shutdown message"))
-        weights_pub = session.declare_publisher(
-            keys.weights, congestion_control=zenoh.CongestionControl.BLOCK, priority=zenoh.Priority.DATA_HIGH
-        )
-        stats_pub = session.declare_publisher(
-            keys.stats_learner,
-            encoding=zenoh.Encoding.APPLICATION_JSON,
-            congestion_control=zenoh.CongestionControl.DROP,
-            priority=zenoh.Priority.DATA_LOW,
-        )
-        shutdown_pub = session.declare_publisher(keys.control_shutdown, congestion_control=zenoh.CongestionControl.BLOCK)
+        stop_on_shutdown(session, keys, stop)
+        stats_pub = StatsPublisher(session, keys.stats_learner)
+        shutdown = Shutdown(session, keys)
         token = session.liveliness().declare_token(keys.alive("learner"))
-        querier = session.declare_querier(
-            keys.sample, timeout=QUERY_TIMEOUT_S, consolidation=zenoh.ConsolidationMode.NONE
-        )
-
-        def publish_weights() -> None:
-            latest["payload"] = P.encode_weights(lrn.weights())
-            weights_pub.put(latest["payload"])
-
-        def do_eval() -> None:
-            if cfg.eval_episodes == 0:
-                return
-            t0 = time.monotonic()
-            mean, std, length = evaluate(lrn.weights(), spec, cfg.eval_episodes, cfg.seed + 1_000_000 + 1_000 * lrn.evals)
-            lrn.evals += 1
-            lrn.last_eval_return = mean
-            elapsed = time.monotonic() - start
-            losses = lrn.last_losses
-            progress.row(
-                {
-                    "time": round(elapsed, 3),
-                    "env_steps": lrn.env_steps,
-                    "updates": lrn.updates,
-                    "policy_version": lrn.policy_version,
-                    "eval_return": mean,
-                    "eval_return_std": std,
-                    "eval_length": length,
-                    "alpha": lrn.sac.alpha,
-                    "critic_loss": losses.get("critic_loss", float("nan")),
-                    "actor_loss": losses.get("actor_loss", float("nan")),
-                    "updates_per_s": lrn.updates / max(elapsed, 1e-9),
-                    **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS},
-                    **{k: buffer_meta.get(k) for k in EXPERT_COLUMNS},
-                }
-            )
-            log.info(
-                "eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f, %.1fs)",
-                lrn.env_steps, lrn.updates, mean, std, length, time.monotonic() - t0,
-            )
-
-        publish_weights()
-        if not lrn.resumed:
-            do_eval()  # the untrained policy: the baseline every curve starts from
-            lrn.next_eval = cfg.eval_interval
-
-        waiting_logged = False
-        while not querier.matching_status.matching and not stop.is_set():
-            if not waiting_logged:
-                log.info("waiting for the buffer service on %s", keys.sample)
-                waiting_logged = True
-            stop.wait(0.1)
-
-        in_flight: collections.deque = collections.deque()
+        lrn = Learner(cfg, spec, ZenohWeightsServer(session, keys))
+        log.info("learner for run %s on %s: %s, networks %s, batch %d, %d env steps",
+                 cfg.run, lrn.device, cfg.algo, cfg.hidden, cfg.batch_size, cfg.total_steps)
+        stream = ZenohBatchStream(session, keys, cfg.batches_per_request, cfg.batch_size, cfg.requests_in_flight, stop)
+        lrn.start()
+        stream.wait_for_buffer()
+        finished = False
         next_stats = time.monotonic()
-        next_checkpoint = (lrn.updates // cfg.checkpoint_interval + 1) * cfg.checkpoint_interval
-        rate_limited_at_end = False
-        last_buffer_steps, buffer_restarts, transitions_lost, last_error_log = 0, 0, 0, 0.0
-        while not stop.is_set():
-            while len(in_flight) < cfg.requests_in_flight:
-                in_flight.append(querier.get(payload=request))
-            t0 = time.monotonic()
-            reply = next(iter(in_flight.popleft()), None)
-            wait_times.append(time.monotonic() - t0)
-            batch: P.BatchReply | None = None
-            if reply is None or reply.ok is None:
-                sample_errors += 1
-                why = "no reply" if reply is None else reply.err.payload.to_string()
-                if time.monotonic() - last_error_log > 10:  # the buffer may be down for a while: do not flood the log
-                    log.warning("sample query failed (%s); retrying (%d failures so far)", why, sample_errors)
-                    last_error_log = time.monotonic()
-                stop.wait(0.5)
-            else:
-                try:
-                    batch = P.BatchReply.decode(reply.ok.payload.to_bytes())
-                except P.ProtocolError as e:
-                    sample_errors += 1
-                    log.warning("malformed batch reply: %s", e)
+        for batch in stream:
             if batch is not None:
-                buffer_steps = int(batch.meta.get("env_steps", 0))
-                if buffer_steps < last_buffer_steps:
-                    # The buffer's counter never goes back unless it restarted from an older checkpoint.
-                    buffer_restarts += 1
-                    transitions_lost += last_buffer_steps - buffer_steps
-                    log.warning("the buffer service restarted: %d transitions it had received since its last "
-                                "checkpoint are lost (%d in all)", last_buffer_steps - buffer_steps, transitions_lost)
-                last_buffer_steps = buffer_steps
-                buffer_meta = batch.meta
-                lrn.env_steps = max(lrn.env_steps, buffer_steps)
-                if batch.status == "ok":
-                    # Policy lag: how many weight versions behind the learner the sampled data is.
-                    versions = batch.arrays["policy_version"]
-                    policy_lag.append(float(lrn.policy_version - versions[versions >= 0].mean()) if (versions >= 0).any() else 0.0)
-                    t1 = time.monotonic()
-                    lrn.train_on(batch.arrays, int(batch.meta["batches"]), int(batch.meta["batch_size"]))
-                    update_time += time.monotonic() - t1
-                    rate_limited_at_end = False
-                    if lrn.updates // cfg.weights_interval != (lrn.updates - int(batch.meta["batches"])) // cfg.weights_interval:
-                        lrn.policy_version += 1
-                        publish_weights()
-                else:
-                    not_ready += 1
-                    rate_limited_at_end = batch.reason == "rate_limited" and lrn.env_steps >= cfg.total_steps
-                    stop.wait(batch.retry_after_ms / 1000)
-            if lrn.env_steps >= lrn.next_eval:
-                do_eval()
-                lrn.next_eval = (lrn.env_steps // cfg.eval_interval + 1) * cfg.eval_interval
-            if lrn.updates >= next_checkpoint:
-                lrn.checkpoint()
-                next_checkpoint = (lrn.updates // cfg.checkpoint_interval + 1) * cfg.checkpoint_interval
-            now = time.monotonic()
-            if now >= next_stats:
-                elapsed = now - start
-                waits = np.asarray(wait_times) * 1000 if wait_times else np.zeros(1)
-                stats = {
-                    "time": time.time(),
-                    "updates": lrn.updates,
-                    "policy_version": lrn.policy_version,
-                    "env_steps": lrn.env_steps,
-                    "total_steps": cfg.total_steps,
-                    "last_eval_return": lrn.last_eval_return,
-                    "updates_per_s": lrn.updates / max(elapsed, 1e-9),
-                    "duty_cycle": update_time / max(elapsed, 1e-9),
-                    "batch_wait_ms_p50": float(np.percentile(waits, 50)),
-                    "batch_wait_ms_p99": float(np.percentile(waits, 99)),
-                    "not_ready_replies": not_ready,
-                    "policy_lag_mean": float(np.mean(policy_lag)) if policy_lag else None,
-                    "sample_errors": sample_errors,
-                    "buffer_restarts": buffer_restarts,
-                    "transitions_lost": transitions_lost,
-                    "device": str(lrn.device),
-                }
-                losses = lrn.last_losses
-                stats |= {k: P.finite_or_none(v) for k, v in losses.items()}
-                stats["q_bound_exceeded"] = losses.get("q_bound_exceeded", 0)
-                stats_pub.put(P.encode_stats(stats))
-                if lrn.updates:
-                    progress.scalars({f"train/{k}": v for k, v in losses.items()} | {"train/updates_per_s": stats["updates_per_s"]}, lrn.env_steps)
-                next_stats = now + cfg.stats_interval
-            if lrn.env_steps >= cfg.total_steps and (lrn.updates >= lrn.target_updates() or rate_limited_at_end):
+                lrn.step(batch)
+            else:
+                lrn.see(stream.last_meta)
+            lrn.poll()
+            if time.monotonic() >= next_stats:
+                stats = lrn.stats() | stream.stats()
+                stats_pub.put(stats)
+                lrn.record_scalars(stats)
+                next_stats = time.monotonic() + cfg.stats_interval
+            if lrn.done(starved=stream.rate_limited):
                 finished = True
                 break
-
+        lrn.finish(finished)
+        stats_pub.put({"time": time.time(), "updates": lrn.updates, "policy_version": lrn.policy_version,
+                       "env_steps": lrn.env_steps, "last_eval_return": lrn.last_eval_return, "finished": finished})
         if finished:
-            lrn.policy_version += 1
-            publish_weights()
-            do_eval()
-        lrn.checkpoint()
-        stats_pub.put(P.encode_stats({"time": time.time(), "updates": lrn.updates, "policy_version": lrn.policy_version,
-                                      "env_steps": lrn.env_steps, "last_eval_return": lrn.last_eval_return, "finished": finished}))
-        if finished:
-            log.info("finished: %d env steps, %d updates, last eval return %s", lrn.env_steps, lrn.updates, lrn.last_eval_return)
-            shutdown_pub.put(P.encode_control("shutdown", reason="finished"))
+            shutdown.announce("finished")
         else:
             log.info("stopping (%s) at %d updates", stop.reason, lrn.updates)
         token.undeclare()
-    progress.close()
     return 0

@@ -13,7 +13,7 @@ from __future__ import annotations
 import argparse
 import sys
 
-from silcr.common.config import ConfigError, Config, add_options, option_name, resolve
+from silcr.common.config import ConfigError, Config, add_options, resolve
 
 ROLES_HELP = {
     "train": "run router, buffer service, learner and actors locally until the step budget is spent",

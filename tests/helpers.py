@@ -60,6 +60,7 @@ class Processes:
         self.tag = uuid.uuid4().hex
         self.log_dir = log_dir
         self.procs: dict[str, subprocess.Popen] = {}
+        self.orphans: list[int] = []
 
     def env(self) -> dict[str, str]:
         # SILCR_RUNS_DIR: checkpoints of components started without --runs-dir stay out of the repository.
@@ -78,7 +79,12 @@ class Processes:
     def log(self, name: str) -> str:
         return (self.log_dir / f"{name}.log").read_text(errors="replace")
 
-    def stop_all(self) -> None:
+    def stop_all(self, grace_s: float = 5.0) -> None:
+        """SIGTERM what is still running, then give every tagged process `grace_s` to exit by itself.
+
+        What is still alive after that was left behind (an orphan): it is recorded in
+        `orphans`, for the tests to assert on, and killed.
+        """
         for p in self.procs.values():
             if p.poll() is None:
                 p.send_signal(signal.SIGTERM)
@@ -88,7 +94,11 @@ class Processes:
             except subprocess.TimeoutExpired:
                 p.kill()
                 p.wait(5)
-        for pid in tagged_pids(self.tag):
+        deadline = time.monotonic() + grace_s
+        while (left := tagged_pids(self.tag)) and time.monotonic() < deadline:
+            time.sleep(0.1)
+        self.orphans = left
+        for pid in left:
             os.kill(pid, signal.SIGKILL)
 
 

@@ -21,7 +21,7 @@ import csv
 
 import pytest
 
-from tests.helpers import Processes, free_port, tagged_pids
+from tests.helpers import Processes, free_port
 
 RANDOM_RETURN_CEILING = 20.0  # the untrained policy's evaluation must be below this
 BEST_RETURN_FLOOR = 100.0  # 20x the random policy's return of about 5
@@ -47,4 +47,4 @@ def test_silcr_learns_inverted_pendulum_from_episodic_reward(tmp_path):
     assert returns[0] < RANDOM_RETURN_CEILING, returns
     assert max(returns) >= BEST_RETURN_FLOOR, f"SILCR did not learn: eval returns {returns}"
     assert sum(returns[-2:]) / 2 >= FINAL_RETURN_FLOOR, f"SILCR did not keep what it learned: eval returns {returns}"
-    assert tagged_pids(procs.tag) == []
+    assert procs.orphans == []

@@ -19,7 +19,7 @@ import time
 import pytest
 
 from silcr.common import protocol as P
-from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, small_run_config, tagged_pids, wait_for
+from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, small_run_config, wait_for
 
 def _ip(*args: str) -> None:
     subprocess.run(["ip", *args], check=True, capture_output=True, timeout=30)
@@ -154,4 +154,4 @@ def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
             session.close()
         finally:
             procs.stop_all()
-    assert tagged_pids(procs.tag) == []
+    assert procs.orphans == []

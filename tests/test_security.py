@@ -19,7 +19,7 @@ import pytest
 import zenoh
 
 from silcr.common import protocol as P
-from tests.helpers import REPO, LatestJson, Processes, free_port, small_run_config, tagged_pids, wait_for
+from tests.helpers import REPO, LatestJson, Processes, free_port, small_run_config, wait_for
 
 def _render(template: str, out, **values: str):
     text = (REPO / "deploy" / "zenoh" / template).read_text()
@@ -116,9 +116,7 @@ def test_tls_acl_lets_the_run_train_and_refuses_a_rogue_actor(tmp_path, certs):
             zenoh.open(plain).close()
     finally:
         procs.stop_all()
-    assert tagged_pids(procs.tag) == []
-
-
+    assert procs.orphans == []
 def _try(make):
     try:
         return make()

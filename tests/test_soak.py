@@ -21,7 +21,7 @@ import time
 import pytest
 
 from silcr.common import protocol as P
-from tests.helpers import LatestJson, Processes, client_when_up, free_port, tagged_pids, wait_for
+from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
 
 SECONDS = float(os.environ.get("SILCR_SOAK_SECONDS", "600"))
 ACTORS = 16
@@ -74,8 +74,7 @@ def test_soak_16_actors(tmp_path):
         assert train.wait(120) == 130
     finally:
         procs.stop_all()
-    assert tagged_pids(procs.tag) == []
-
+    assert procs.orphans == []
     peaks = {name: max(r for _, r in s) for name, s in samples.items()}
     print("\npeak RSS (MB):", json.dumps({k: round(v, 1) for k, v in sorted(peaks.items())}))
     print("inbox depth max:", max(inbox_depths), "buffer:", {k: buf[k] for k in ("episodes_received", "episodes_rejected",

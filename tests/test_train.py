@@ -77,7 +77,7 @@ def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
     ckpt = load_checkpoint(run_dir / "checkpoints" / "learner.pt")
     assert ckpt["counters"]["updates"] == int(rows[-1]["updates"])
     assert any((run_dir / "tb").iterdir())
-    assert tagged_pids(procs.tag) == [], "processes left behind"
+    assert procs.orphans == [], "processes left behind"
     assert "done" in procs.log("train")
 
 
@@ -161,9 +161,7 @@ def test_a_killed_buffer_comes_back_from_its_checkpoint_and_the_learner_resumes(
     buffer_log = (run_dir / "logs" / "buffer.log").read_text()
     assert "restored D_O" in buffer_log
     assert learner["finished"] is True
-    assert tagged_pids(procs.tag) == []
-
-
+    assert procs.orphans == []
 def test_a_killed_learner_resumes_from_its_checkpoint_with_its_counters(tmp_path):
     procs = Processes(tmp_path)
     port = free_port()
@@ -195,9 +193,7 @@ def test_a_killed_learner_resumes_from_its_checkpoint_with_its_counters(tmp_path
         assert values == sorted(values), f"{col} went backwards after the resume: {values}"
     final = load_checkpoint(run_dir / "checkpoints" / "learner.pt")
     assert final["counters"]["updates"] > u
-    assert tagged_pids(procs.tag) == []
-
-
+    assert procs.orphans == []
 def test_a_killed_actor_is_restarted_and_the_run_finishes(tmp_path):
     procs = Processes(tmp_path)
     port = free_port()
@@ -219,9 +215,7 @@ def test_a_killed_actor_is_restarted_and_the_run_finishes(tmp_path):
     # the restarted actor explores afresh: a new seed, not its predecessor's
     seeds = re.findall(r"actor 0 on \S+ with \d+ env\(s\), seed (\d+)", (tmp_path / "runs" / run / "logs" / "actor-0.log").read_text())
     assert len(seeds) == 2 and seeds[0] != seeds[1], seeds
-    assert tagged_pids(procs.tag) == []
-
-
+    assert procs.orphans == []
 def test_router_port_in_use_is_a_clear_error(tmp_path):
     import socket
 

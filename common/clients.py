@@ -1,0 +1,468 @@
+"""Protocol clients: one object per direction of traffic, each over Zenoh or in-process.
+
+    actor   --EpisodeWriter-->   buffer    write(episode); `paused` while the rate limiter says so
+    learner <--BatchStream---    buffer    iterate over mixed batches
+    actor   <--WeightsClient--   learner   update(); .policy
+    learner --WeightsServer-->   actors    publish(weights)
+    any     --StatsPublisher-->  monitors  put(stats dict), JSON on silcr/<run>/stats/...
+    any     --Shutdown-------->  everyone  announce(reason); `stop_on_shutdown` listens
+    buffer  --Throttle-------->  actors    send(paused); read by `ZenohEpisodeWriter.paused`
+
+The roles (`silcr.actor.service`, `silcr.learner.service`) are loops over these
+objects and never touch keys, codecs or Zenoh themselves. The Zenoh clients are
+what `silcr train` and a run spread over machines use; the in-process ones let
+`silcr train --single-process` run the very same actor and learner code in one
+process, in a fixed order, with no network (deploy/single_process.py).
+
+The in-process clients reach the buffer through `Replay`, the two methods of
+`silcr.buffer_service.service.ReplayState` they need, so this module never imports
+a component.
+"""
+
+from __future__ import annotations
+
+import collections
+import logging
+import threading
+import time
+from typing import Callable, Generic, Iterator, Protocol, TypeVar
+
+import numpy as np
+import zenoh
+
+from silcr.common import protocol as P
+from silcr.common.lifecycle import StopFlag
+
+log = logging.getLogger("clients")
+
+#: A sample query unanswered for this long counts as failed and is retried.
+QUERY_TIMEOUT_S = 10.0
+
+
+class Replay(Protocol):
+    """What the in-process clients need of the buffer service's state."""
+
+    def store(self, ep: P.Episode) -> None: ...
+
+    def sample(self, request: P.SampleRequest, keep_ratio: bool) -> P.BatchReply: ...
+
+
+# ---------------------------------------------------------------------------
+# actor -> buffer: episodes
+# ---------------------------------------------------------------------------
+
+
+class EpisodeWriter:
+    """Writes finished episodes to the buffer service; `paused` says whether actors should wait."""
+
+    def __init__(self) -> None:
+        self.written = 0
+        self.unwritten = 0  # episodes given up because the process was stopping
+        self.waited_for_buffer_s = 0.0
+
+    @property
+    def paused(self) -> bool:
+        return False
+
+    def write(self, ep: P.Episode) -> bool:
+        """Store `ep`, waiting while no buffer service is there; False if stopped first (the episode is lost)."""
+        raise NotImplementedError
+
+    def stats(self) -> dict:
+        return {"episodes_written": self.written, "episodes_unwritten": self.unwritten,
+                "waited_for_buffer_s": self.waited_for_buffer_s}
+
+
+class ZenohEpisodeWriter(EpisodeWriter):
+    """Publishes with BLOCK congestion control; with no buffer service subscribed a put would vanish,
+    so `write` holds the episode (and the actor) until one is back."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys, stop: StopFlag) -> None:
+        super().__init__()
+        self._stop = stop
+        self._pub = session.declare_publisher(keys.episodes, congestion_control=zenoh.CongestionControl.BLOCK,
+                                              priority=zenoh.Priority.DATA)
+        self._throttle = session.declare_subscriber(keys.control_throttle, zenoh.handlers.RingChannel(1))
+        self._paused = False
+        self.malformed_throttle = 0
+
+    @property
+    def paused(self) -> bool:
+        msg = self._throttle.try_recv()
+        if msg is not None:
+            try:
+                self._paused = bool(P.decode_control(msg.payload.to_bytes(), "throttle")["paused"])
+            except (P.ProtocolError, KeyError):
+                self.malformed_throttle += 1
+                log.warning("ignoring malformed throttle message")
+        return self._paused
+
+    def write(self, ep: P.Episode) -> bool:
+        payload = P.EpisodeCodec.encode(ep)
+        if not self._pub.matching_status.matching:
+            log.info("no buffer service is listening; holding episode %d until one is", ep.seq)
+            t0 = time.monotonic()
+            while not self._pub.matching_status.matching and not self._stop.wait(0.05):
+                pass
+            self.waited_for_buffer_s += time.monotonic() - t0
+            if self._stop.is_set():
+                log.warning("stopping with episode %d unpublished (no buffer service)", ep.seq)
+                self.unwritten += 1
+                return False
+        self._pub.put(payload)
+        self.written += 1
+        return True
+
+    def stats(self) -> dict:
+        return super().stats() | {"malformed_throttle": self.malformed_throttle}
+
+
+class InProcessEpisodeWriter(EpisodeWriter):
+    """Stores straight into the buffer's state. Never paused: the single-process loop keeps the ratio itself."""
+
+    def __init__(self, replay: Replay) -> None:
+        super().__init__()
+        self._replay = replay
+
+    def write(self, ep: P.Episode) -> bool:
+        self._replay.store(ep)
+        self.written += 1
+        return True
+
+
+# ---------------------------------------------------------------------------
+# buffer -> learner: mixed batches
+# ---------------------------------------------------------------------------
+
+
+class BatchStream:
+    """Mixed batches from the buffer service.
+
+    Iterating yields a `BatchReply` with status `ok`, or None when the buffer had
+    nothing to give this time (warming up, rate-limited, unreachable; the stream
+    has already waited as long as the buffer asked), so the caller can keep its
+    own schedule. It ends when the stop flag is set.
+
+    Every reply's `meta` describes the buffer (`last_meta`). The buffer's count of
+    received transitions never goes back unless it restarted from an older
+    checkpoint: the stream counts such restarts and the transitions they lost.
+    """
+
+    def __init__(self, stop: StopFlag | None = None) -> None:
+        self._stop = stop or StopFlag()
+        self.last_meta: dict = {}
+        self.batches = 0
+        self.not_ready = 0
+        self.sample_errors = 0
+        self.buffer_restarts = 0
+        self.transitions_lost = 0
+        #: the last reply said the learner is ahead of the actors (at the end of a run: nothing more will come)
+        self.rate_limited = False
+        self.wait_times: collections.deque[float] = collections.deque(maxlen=2000)
+        self._last_buffer_steps = 0
+
+    def get(self) -> P.BatchReply | None:
+        raise NotImplementedError
+
+    def __iter__(self) -> Iterator[P.BatchReply | None]:
+        while not self._stop.is_set():
+            yield self.get()
+
+    def _account(self, reply: P.BatchReply) -> P.BatchReply | None:
+        self.last_meta = reply.meta
+        buffer_steps = int(reply.meta.get("env_steps", 0))
+        if buffer_steps < self._last_buffer_steps:
+            self.buffer_restarts += 1
+            self.transitions_lost += self._last_buffer_steps - buffer_steps
+            log.warning("the buffer service restarted: %d transitions it had received since its last checkpoint "
+                        "are lost (%d in all)", self._last_buffer_steps - buffer_steps, self.transitions_lost)
+        self._last_buffer_steps = buffer_steps
+        if reply.status == "ok":
+            self.batches += int(reply.meta["batches"])
+            self.rate_limited = False
+            return reply
+        self.not_ready += 1
+        self.rate_limited = reply.reason == "rate_limited"
+        return None
+
+    def stats(self) -> dict:
+        waits = np.asarray(self.wait_times) * 1000 if self.wait_times else np.zeros(1)
+        return {
+            "batch_wait_ms_p50": float(np.percentile(waits, 50)),
+            "batch_wait_ms_p99": float(np.percentile(waits, 99)),
+            "not_ready_replies": self.not_ready,
+            "sample_errors": self.sample_errors,
+            "buffer_restarts": self.buffer_restarts,
+            "transitions_lost": self.transitions_lost,
+        }
+
+
+class ZenohBatchStream(BatchStream):
+    """Keeps `requests_in_flight` sample queries of `batches_per_request` batches outstanding, so the
+    next batches cross the network while the current one trains."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys, batches_per_request: int, batch_size: int,
+                 requests_in_flight: int, stop: StopFlag) -> None:
+        super().__init__(stop)
+        self._request = P.SampleRequest(batches_per_request, batch_size).encode()
+        self._in_flight_limit = requests_in_flight
+        self._querier = session.declare_querier(keys.sample, timeout=QUERY_TIMEOUT_S,
+                                                consolidation=zenoh.ConsolidationMode.NONE)
+        self._key = keys.sample
+        self._in_flight: collections.deque = collections.deque()
+        self._last_error_log = 0.0
+
+    def wait_for_buffer(self) -> None:
+        """Block until a buffer service answers sample queries (or stop)."""
+        if not self._querier.matching_status.matching:
+            log.info("waiting for the buffer service on %s", self._key)
+        while not self._querier.matching_status.matching and not self._stop.wait(0.1):
+            pass
+
+    def get(self) -> P.BatchReply | None:
+        while len(self._in_flight) < self._in_flight_limit:
+            self._in_flight.append(self._querier.get(payload=self._request))
+        t0 = time.monotonic()
+        reply = next(iter(self._in_flight.popleft()), None)
+        self.wait_times.append(time.monotonic() - t0)
+        if reply is None or reply.ok is None:
+            self.sample_errors += 1
+            why = "no reply" if reply is None else reply.err.payload.to_string()
+            if time.monotonic() - self._last_error_log > 10:  # the buffer may be down for a while: do not flood the log
+                log.warning("sample query failed (%s); retrying (%d failures so far)", why, self.sample_errors)
+                self._last_error_log = time.monotonic()
+            self._stop.wait(0.5)
+            return None
+        try:
+            batch = P.BatchReply.decode(reply.ok.payload.to_bytes())
+        except P.ProtocolError as e:
+            self.sample_errors += 1
+            log.warning("malformed batch reply: %s", e)
+            return None
+        out = self._account(batch)
+        if out is None:
+            self._stop.wait(batch.retry_after_ms / 1000)
+        return out
+
+
+class InProcessBatchStream(BatchStream):
+    """Samples straight from the buffer's state, keeping exactly the configured updates per step:
+    it serves only the updates the inserted transitions are due (never runs ahead), and never waits."""
+
+    def __init__(self, replay: Replay, batches_per_request: int, batch_size: int, stop: StopFlag | None = None) -> None:
+        super().__init__(stop)
+        self._replay = replay
+        self._request = P.SampleRequest(batches_per_request, batch_size)
+
+    def get(self) -> P.BatchReply | None:
+        return self._account(self._replay.sample(self._request, keep_ratio=True))
+
+    def due(self) -> Iterator[P.BatchReply]:
+        """Every batch the buffer can serve now."""
+        while (batch := self.get()) is not None:
+            yield batch
+
+
+# ---------------------------------------------------------------------------
+# learner -> actors: weights
+# ---------------------------------------------------------------------------
+
+PolicyT = TypeVar("PolicyT")
+
+
+class WeightsClient(Generic[PolicyT]):
+    """The newest policy an actor has. `update()` takes new weights when there are any.
+
+    Weights are taken when they are newer than the current ones or come from another
+    learner incarnation (`Weights.supersedes`): a learner restarted from an older
+    checkpoint counts versions again from there. Weights the policy cannot use
+    (`make_policy` raises ProtocolError or ValueError, e.g. wrong shapes) are
+    rejected and counted; the actor keeps acting with what it has.
+    """
+
+    def __init__(self, make_policy: Callable[[P.Weights], PolicyT], initial: P.Weights) -> None:
+        self._make_policy = make_policy
+        self.weights = initial
+        self.policy: PolicyT = make_policy(initial)
+        self.updates = 0
+        self.rejected = 0
+        self.latency_ms: collections.deque[float] = collections.deque(maxlen=100)
+
+    def _offer(self, new: P.Weights) -> bool:
+        if not new.supersedes(self.weights):
+            return False
+        try:
+            policy = self._make_policy(new)
+        except (P.ProtocolError, ValueError) as e:
+            self.rejected += 1
+            log.warning("ignoring unusable weights (version %d): %s", new.version, e)
+            return False
+        self.weights, self.policy = new, policy
+        self.updates += 1
+        if new.sent_at:
+            self.latency_ms.append(1000 * (time.time() - new.sent_at))  # same clock only on one machine
+        return True
+
+    def update(self) -> bool:
+        """Take the newest weights if there are any; whether the policy changed."""
+        raise NotImplementedError
+
+    @property
+    def version(self) -> int:
+        return self.weights.version
+
+    def stats(self) -> dict:
+        return {"policy_version": self.version, "weights_rejected": self.rejected,
+                "weights_latency_ms_p50": float(np.median(self.latency_ms)) if self.latency_ms else None}
+
+
+class ZenohWeightsClient(WeightsClient[PolicyT]):
+    """Follows the weights topic keeping only the newest message (a slow actor never holds the learner
+    back). At start it asks the learner's queryable for the latest weights, so a late joiner does not
+    wait for the next broadcast; with no learner within `wait_s` it starts from `initial`."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys, make_policy: Callable[[P.Weights], PolicyT],
+                 initial: Callable[[], P.Weights], wait_s: float, stop: StopFlag) -> None:
+        self._sub = session.declare_subscriber(keys.weights, zenoh.handlers.RingChannel(1))
+        super().__init__(make_policy, initial())
+        fetched = self._fetch(session, keys, wait_s, stop)
+        if fetched is None or not self._offer(fetched):
+            log.info("no learner answered; acting with a local random policy until weights arrive")
+
+    def _fetch(self, session: zenoh.Session, keys: P.Keys, wait_s: float, stop: StopFlag) -> P.Weights | None:
+        # Right after a session opens a query can find no queryable yet (discovery is
+        # asynchronous), so wait for the learner's queryable to match before asking.
+        querier = session.declare_querier(keys.weights, timeout=10.0)
+        try:
+            deadline = time.monotonic() + wait_s
+            while not querier.matching_status.matching:
+                if time.monotonic() > deadline or stop.wait(0.05):
+                    return None
+            for reply in querier.get():
+                if reply.ok is not None:
+                    try:
+                        return P.decode_weights(reply.ok.payload.to_bytes())
+                    except P.ProtocolError as e:
+                        self.rejected += 1
+                        log.warning("ignoring malformed weights reply: %s", e)
+            return None
+        finally:
+            querier.undeclare()
+
+    def update(self) -> bool:
+        msg = self._sub.try_recv()
+        if msg is None:
+            return False
+        try:
+            new = P.decode_weights(msg.payload.to_bytes())
+        except P.ProtocolError as e:
+            self.rejected += 1
+            log.warning("ignoring malformed weights: %s", e)
+            return False
+        return self._offer(new)
+
+
+class WeightsServer:
+    """The learner's side: `publish(weights)` reaches every actor."""
+
+    def publish(self, weights: P.Weights) -> None:
+        raise NotImplementedError
+
+
+class ZenohWeightsServer(WeightsServer):
+    """Publishes with BLOCK congestion control and high priority, and answers queries for the latest
+    weights (late-joining actors ask at start)."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys) -> None:
+        self._key = keys.weights
+        self._latest = b""
+        self._lock = threading.Lock()
+        self._pub = session.declare_publisher(keys.weights, congestion_control=zenoh.CongestionControl.BLOCK,
+                                              priority=zenoh.Priority.DATA_HIGH)
+        session.declare_queryable(keys.weights, self._answer)
+
+    def _answer(self, query: zenoh.Query) -> None:
+        with query:  # leaving the block finalizes the query
+            with self._lock:
+                latest = self._latest
+            if latest:
+                query.reply(self._key, latest)
+
+    def publish(self, weights: P.Weights) -> None:
+        payload = P.encode_weights(weights)
+        with self._lock:
+            self._latest = payload
+        self._pub.put(payload)
+
+
+class InProcessWeights(WeightsServer):
+    """Server and clients in one process: `publish` sets the latest weights, each client's `update` takes them."""
+
+    def __init__(self) -> None:
+        self.latest: P.Weights | None = None
+
+    def publish(self, weights: P.Weights) -> None:
+        self.latest = weights
+
+    def client(self, make_policy: Callable[[P.Weights], PolicyT], initial: P.Weights) -> "InProcessWeightsClient[PolicyT]":
+        c = InProcessWeightsClient(self, make_policy, initial)
+        c.update()  # as a Zenoh client asks the learner at start
+        return c
+
+
+class InProcessWeightsClient(WeightsClient[PolicyT]):
+    def __init__(self, board: InProcessWeights, make_policy: Callable[[P.Weights], PolicyT], initial: P.Weights) -> None:
+        super().__init__(make_policy, initial)
+        self._board = board
+
+    def update(self) -> bool:
+        return self._board.latest is not None and self._offer(self._board.latest)
+
+
+# ---------------------------------------------------------------------------
+# any component -> monitors: stats
+# ---------------------------------------------------------------------------
+
+
+class StatsPublisher:
+    """JSON stats on one key. DROP congestion control and low priority: stats are superseded every
+    second, and a slow monitor must never hold a component back."""
+
+    def __init__(self, session: zenoh.Session, key: str) -> None:
+        self._pub = session.declare_publisher(key, encoding=zenoh.Encoding.APPLICATION_JSON,
+                                              congestion_control=zenoh.CongestionControl.DROP,
+                                              priority=zenoh.Priority.DATA_LOW)
+
+    def put(self, stats: dict) -> None:
+        self._pub.put(P.encode_stats(stats))
+
+
+# ---------------------------------------------------------------------------
+# control: the end of a run
+# ---------------------------------------------------------------------------
+
+
+class Throttle:
+    """The buffer's rate limiter telling actors to pause or go on (BLOCK, high priority)."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys) -> None:
+        self._pub = session.declare_publisher(keys.control_throttle, congestion_control=zenoh.CongestionControl.BLOCK,
+                                              priority=zenoh.Priority.DATA_HIGH)
+
+    def send(self, paused: bool) -> None:
+        self._pub.put(P.encode_control("throttle", paused=paused))
+
+
+class Shutdown:
+    """Announces the end of the run to every component (BLOCK: it must not be lost)."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys) -> None:
+        self._pub = session.declare_publisher(keys.control_shutdown, congestion_control=zenoh.CongestionControl.BLOCK)
+
+    def announce(self, reason: str) -> None:
+        self._pub.put(P.encode_control("shutdown", reason=reason))
+
+
+def stop_on_shutdown(session: zenoh.Session, keys: P.Keys, stop: StopFlag) -> None:
+    """Set `stop` when anyone announces the end of the run."""
+    session.declare_subscriber(keys.control_shutdown, lambda s: stop.set("shutdown message"))
