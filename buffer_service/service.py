@@ -254,29 +254,59 @@ class Inbox:
             return pending
 
 
+def checkpoint_path(cfg: Config) -> Path:
+    return cfg.run_dir / "checkpoints" / "buffer.ckpt"
+
+
+def open_replay(cfg: Config, spec: EnvSpec) -> tuple[ReplayState, dict[str, Any]]:
+    """The buffer's state, restored from its checkpoint with --resume when there is one.
+
+    Returns it and what the stats say about the restore (empty on a fresh start).
+    Raises `snapshot.SnapshotError` for a checkpoint that cannot be used: a run
+    refuses to start rather than silently begin empty (the file is kept for inspection).
+    """
+    state = ReplayState(cfg, spec)
+    path = checkpoint_path(cfg)
+    if not cfg.resume:
+        return state, {}
+    if not path.exists():
+        log.info("--resume: no buffer checkpoint at %s yet; starting empty", path)
+        return state, {}
+    t0 = time.monotonic()
+    snap = snapshot.restore(path, state)
+    restored = {"restored_transitions": snap.transitions,
+                "restored_checkpoint_age_s": time.time() - snap.header["written_at"]}
+    log.info("restored D_O (%d transitions) and D_E (%d) from %s in %.1fs; it was written %.0fs ago at %d "
+             "transitions received; anything received after that was lost", len(state.fifo),
+             len(state.heap) if state.heap is not None else 0, path, time.monotonic() - t0,
+             restored["restored_checkpoint_age_s"], snap.transitions)
+    return state, restored
+
+
+def write_final_checkpoint(state: ReplayState, writer: snapshot.BackgroundWriter) -> None:
+    """A last checkpoint on the way out, so a clean stop (Ctrl-C, end of run) loses nothing."""
+    writer.join()
+    t0 = time.monotonic()
+    try:
+        snapshot.write(writer.path, snapshot.take(state))
+        log.info("checkpoint of %d transitions written to %s in %.1fs", state.transitions_received, writer.path,
+                 time.monotonic() - t0)
+    except OSError as e:
+        log.error("final checkpoint failed: %s", e)
+    if writer.failed:
+        log.error("%d periodic checkpoints failed; last error: %s", writer.failed, writer.last_error)
+
+
 def run_buffer(cfg: Config, stop: StopFlag) -> int:
     spec = EnvSpec.of(cfg.env)
-    state = ReplayState(cfg, spec)
+    try:
+        state, restored = open_replay(cfg, spec)
+    except snapshot.SnapshotError as e:
+        log.error("cannot resume: %s", e)
+        return 1
     keys = P.Keys(cfg.run)
     inbox = Inbox()
-    ckpt_path = cfg.run_dir / "checkpoints" / "buffer.ckpt"
-    restored: dict[str, Any] = {}
-    if cfg.resume and ckpt_path.exists():
-        t0 = time.monotonic()
-        try:
-            snap = snapshot.restore(ckpt_path, state)
-        except snapshot.SnapshotError as e:
-            # Refuse to start rather than silently begin empty: the file is kept for inspection.
-            log.error("cannot resume: %s", e)
-            return 1
-        restored = {"restored_transitions": snap.transitions,
-                    "restored_checkpoint_age_s": time.time() - snap.header["written_at"]}
-        log.info("restored D_O (%d transitions) and D_E (%d) from %s in %.1fs; it was written %.0fs ago at %d "
-                 "transitions received; anything received after that was lost", len(state.fifo),
-                 len(state.heap) if state.heap is not None else 0, ckpt_path, time.monotonic() - t0,
-                 restored["restored_checkpoint_age_s"], snap.transitions)
-    elif cfg.resume:
-        log.info("--resume: no buffer checkpoint at %s yet; starting empty", ckpt_path)
+    ckpt_path = checkpoint_path(cfg)
     writer = snapshot.BackgroundWriter(ckpt_path)
     log.info(
         "buffer for run %s: %s, algo %s, D_O %d, D_E %s, learning starts after %d transitions",
@@ -347,17 +377,7 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
             with q:
                 q.reply_err(b"buffer service is shutting down")
         token.undeclare()
-        # A last checkpoint on the way out, so a clean stop (Ctrl-C, end of run) loses nothing.
-        writer.join()
-        t0 = time.monotonic()
-        try:
-            snapshot.write(ckpt_path, snapshot.take(state))
-            log.info("checkpoint of %d transitions written to %s in %.1fs", state.transitions_received, ckpt_path,
-                     time.monotonic() - t0)
-        except OSError as e:
-            log.error("final checkpoint failed: %s", e)
-        if writer.failed:
-            log.error("%d periodic checkpoints failed; last error: %s", writer.failed, writer.last_error)
+        write_final_checkpoint(state, writer)
         log.info(
             "buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d batches served",
             stop.reason, state.episodes_received, state.transitions_received,

@@ -96,7 +96,9 @@ class Config:
     batches_per_request: int = _opt(4, {"train", "learner"}, "batches fetched per sample query")
     requests_in_flight: int = _opt(2, {"train", "learner"}, "sample queries kept in flight so the learner never waits on the network")
     # --- actors ----------------------------------------------------------------
-    actors: int = _opt(1, {"train"}, "number of actor processes")
+    actors: int = _opt(1, {"train"}, "number of actors (processes; with --single-process, stepped in turn)")
+    single_process: bool = _opt(False, {"train"}, "run buffer, learner and actors in this one process, in a fixed order, "
+                                "without Zenoh: the same seed gives the same progress.csv (docs/deployment.md)")
     max_restarts: int = _opt(5, {"train"}, "times `silcr train` restarts a component that dies (actors fresh; buffer and learner from their checkpoints) before giving up")
     actor_id: int = _opt(0, {"actor"}, "this actor's id (also its seed offset); -1: a random id, for replicas that share one command (docker compose --scale)")
     envs_per_actor: int = _opt(1, {"train", "actor"}, "environments stepped by each actor with one batched forward pass")

@@ -28,6 +28,7 @@ from silcr.common.clients import Shutdown
 from silcr.common.config import Config
 from silcr.common.lifecycle import StopFlag, setup_logging
 from silcr.common.zenoh_session import open_session, session_config
+from silcr.deploy.console import TrainingDisplay
 from silcr.deploy.monitor import StatsSnapshot
 
 log = logging.getLogger("train")
@@ -201,58 +202,14 @@ def run_train(cfg: Config) -> int:
     return code
 
 
-def divergence_warning(learner_stats: dict[str, Any]) -> str:
-    """The one line `silcr train` prints when the critics first pass the soft-Q bound."""
-    def num(key: str) -> str:
-        v = learner_stats.get(key)
-        return f"{v:.4g}" if isinstance(v, (int, float)) else "?"
-
-    return (f"silcr train: warning: the critics are diverging: {learner_stats.get('q_bound_exceeded')} update(s) by "
-            f"{learner_stats.get('env_steps', '?')} env steps had Q above the largest soft-Q value the rewards and alpha "
-            f"allow (now: max Q {num('q_max')}, bound {num('q_bound')}); a smaller --tau helps (docs/algorithm.md, "
-            f"'Divergence')")
-
-
 def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
     """Follow the run until the learner finishes (0) or a component dies (1)."""
-    from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
-
-    interactive = sys.stdout.isatty()
-    progress = Progress(
-        TextColumn("[bold]env steps"),
-        BarColumn(),
-        MofNCompleteColumn(),
-        TextColumn("updates {task.fields[updates]}  version {task.fields[version]}  eval {task.fields[eval]}"),
-        TimeElapsedColumn(),
-        disable=not interactive,
-    )
-    task = progress.add_task("train", total=cfg.total_steps, updates=0, version=0, eval="-")
-    last_print = 0.0
     clean_exit_seen: dict[str, float] = {}
-    warned_divergence = False
-
-    def say(message: str) -> None:
-        if interactive:
-            progress.console.print(message)
-        else:
-            print(message, flush=True)
-
-    with progress:
+    with TrainingDisplay(cfg.total_steps) as display:
         while True:
             snap = stats.as_dict()
             lr = snap["learner"] or {}
-            if not warned_divergence and (lr.get("q_bound_exceeded") or 0) > 0:
-                warned_divergence = True
-                say(divergence_warning(lr))
-            env_steps = max(int(lr.get("env_steps", 0)), int((snap["buffer"] or {}).get("transitions_received", 0)))
-            ev = lr.get("last_eval_return")
-            ev_s = f"{ev:.1f}" if isinstance(ev, (int, float)) else "-"
-            progress.update(task, completed=min(env_steps, cfg.total_steps), updates=lr.get("updates", 0),
-                            version=lr.get("policy_version", 0), eval=ev_s)
-            if not interactive and time.monotonic() - last_print > 10:
-                print(f"env steps {env_steps}/{cfg.total_steps}  updates {lr.get('updates', 0)}  "
-                      f"version {lr.get('policy_version', 0)}  eval {ev_s}", flush=True)
-                last_print = time.monotonic()
+            display.show(max(int(lr.get("env_steps", 0)), int((snap["buffer"] or {}).get("transitions_received", 0))), lr)
             if run.procs["learner"].exitcode == 0:
                 return 0
             for name, p in list(run.procs.items()):
@@ -262,8 +219,8 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     # Actors hold no state that matters: start a fresh one (new incarnation). The
                     # buffer and the learner come back from their latest checkpoints.
                     run.restarts[name] = run.restarts.get(name, 0) + 1
-                    say(f"silcr train: {name} exited with code {p.exitcode}; restarting it "
-                        f"({run.restarts[name]}/{cfg.max_restarts})")
+                    display.say(f"silcr train: {name} exited with code {p.exitcode}; restarting it "
+                                f"({run.restarts[name]}/{cfg.max_restarts})")
                     role, acfg = run.specs[name]
                     if role in ("buffer", "learner"):
                         acfg = Config(**acfg.to_dict() | {"resume": True})
@@ -276,7 +233,7 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     clean_exit_seen.setdefault(name, time.monotonic())
                     if time.monotonic() - clean_exit_seen[name] < STOP_GRACE_S:
                         continue
-                progress.stop()
+                display.stop()
                 print(f"silcr train: {name} exited with code {p.exitcode}; last lines of {run.logs / (name + '.log')}:\n"
                       f"{_tail(run.logs / (name + '.log'))}", file=sys.stderr)
                 return 1

@@ -83,6 +83,7 @@ class Learner:
         self.next_eval = 0
         self.evals = 0
         self.last_eval_return: float | None = None
+        self.last_eval_updates = -1
         self.checkpoint_path = cfg.run_dir / "checkpoints" / "learner.pt"
         # --resume continues from a checkpoint when there is one, so the same command
         # serves a first start and every restart (launcher, sweep, docker restart policy).
@@ -143,6 +144,7 @@ class Learner:
                                      self.cfg.seed + 1_000_000 + 1_000 * self.evals)
         self.evals += 1
         self.last_eval_return = mean
+        self.last_eval_updates = self.updates
         elapsed = time.monotonic() - self.started
         losses = self.last_losses
         self.progress.row(
@@ -227,7 +229,8 @@ class Learner:
         if finished:
             self.policy_version += 1
             self.publish_weights()
-            self.evaluate()
+            if self.updates != self.last_eval_updates:  # not the policy the schedule just evaluated
+                self.evaluate()
             log.info("finished: %d env steps, %d updates, last eval return %s", self.env_steps, self.updates,
                      self.last_eval_return)
         self.checkpoint()

@@ -172,6 +172,10 @@ def main(argv: list[str] | None = None) -> int:
         subs[role].error(str(e))
 
     if role == "train":
+        if cfg.single_process:
+            from silcr.deploy.single_process import run_single_process
+
+            return run_single_process(cfg)
         from silcr.deploy.local import run_train
 
         return run_train(cfg)

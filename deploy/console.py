@@ -1,0 +1,74 @@
+"""What `silcr train` shows while a run goes: a progress bar (or plain lines when not on a terminal),
+one-off messages, and the divergence warning. Both launchers use it: `deploy.local` (processes)
+and `deploy.single_process`.
+"""
+
+from __future__ import annotations
+
+import sys
+import time
+from typing import Any
+
+
+def divergence_warning(learner_stats: dict[str, Any]) -> str:
+    """The one line `silcr train` prints when the critics first pass the soft-Q bound."""
+    def num(key: str) -> str:
+        v = learner_stats.get(key)
+        return f"{v:.4g}" if isinstance(v, (int, float)) else "?"
+
+    return (f"silcr train: warning: the critics are diverging: {learner_stats.get('q_bound_exceeded')} update(s) by "
+            f"{learner_stats.get('env_steps', '?')} env steps had Q above the largest soft-Q value the rewards and alpha "
+            f"allow (now: max Q {num('q_max')}, bound {num('q_bound')}); a smaller --tau helps (docs/algorithm.md, "
+            f"'Divergence')")
+
+
+class TrainingDisplay:
+    """A rich progress bar over environment steps on a terminal; a line every 10 s otherwise (logs, CI)."""
+
+    def __init__(self, total_steps: int) -> None:
+        from rich.progress import BarColumn, MofNCompleteColumn, Progress, TextColumn, TimeElapsedColumn
+
+        self.total_steps = total_steps
+        self.interactive = sys.stdout.isatty()
+        self._bar = Progress(
+            TextColumn("[bold]env steps"),
+            BarColumn(),
+            MofNCompleteColumn(),
+            TextColumn("updates {task.fields[updates]}  version {task.fields[version]}  eval {task.fields[eval]}"),
+            TimeElapsedColumn(),
+            disable=not self.interactive,
+        )
+        self._task = self._bar.add_task("train", total=total_steps, updates=0, version=0, eval="-")
+        self._last_print = 0.0
+        self._warned_divergence = False
+
+    def __enter__(self) -> "TrainingDisplay":
+        self._bar.__enter__()
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self._bar.__exit__(*exc)
+
+    def stop(self) -> None:
+        self._bar.stop()
+
+    def say(self, message: str) -> None:
+        if self.interactive:
+            self._bar.console.print(message)
+        else:
+            print(message, flush=True)
+
+    def show(self, env_steps: int, learner_stats: dict[str, Any]) -> None:
+        """Advance the bar from the learner's stats; warn once if the critics passed the soft-Q bound."""
+        if not self._warned_divergence and (learner_stats.get("q_bound_exceeded") or 0) > 0:
+            self._warned_divergence = True
+            self.say(divergence_warning(learner_stats))
+        ev = learner_stats.get("last_eval_return")
+        ev_s = f"{ev:.1f}" if isinstance(ev, (int, float)) else "-"
+        updates, version = learner_stats.get("updates", 0), learner_stats.get("policy_version", 0)
+        self._bar.update(self._task, completed=min(env_steps, self.total_steps), updates=updates, version=version,
+                         eval=ev_s)
+        if not self.interactive and time.monotonic() - self._last_print > 10:
+            print(f"env steps {env_steps}/{self.total_steps}  updates {updates}  version {version}  eval {ev_s}",
+                  flush=True)
+            self._last_print = time.monotonic()

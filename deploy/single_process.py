@@ -1,0 +1,121 @@
+"""`silcr train --single-process`: the buffer, the learner and the actors in one process, in a fixed order.
+
+No Zenoh, no router, no other process: the same `ReplayState`, `Learner` and
+`Actor` as a distributed run, joined by the in-process clients of
+silcr.common.clients. Each round:
+
+1. every actor, in id order, steps each of its envs once with its current policy
+   (new weights are taken every `--weights-poll-steps` steps); finished episodes
+   go straight into D_O and D_E;
+2. the learner takes exactly the updates the transitions received so far are due
+   (`--samples-per-insert`, after `--learning-starts`), never more;
+3. evaluations and checkpoints fall due on the same schedules as in a distributed run.
+
+Nothing here depends on timing, so one seed gives the same progress.csv to the
+last digit on one machine, except the wall-clock columns `time` and
+`updates_per_s` (tests/test_single_process.py). What the distributed run adds -
+actors that run ahead or fall behind, weights that arrive a little late - is
+exactly what this mode leaves out: use it for debugging (a debugger works),
+reproducible experiments and small machines; use the distributed launcher to
+spread a run over cores and machines (docs/deployment.md, "Which launcher").
+
+Checkpoints: the learner's on its update schedule, the buffer's every
+`--buffer-checkpoint-interval` seconds in a background thread, both on the way
+out; `--resume` restores both (the actors start new episodes, with new seeds).
+There is no stats topic: the progress bar, progress.csv and TensorBoard report.
+"""
+
+from __future__ import annotations
+
+import logging
+import signal
+import sys
+import time
+
+from silcr.actor.service import Actor, policy_factory, random_initial_weights
+from silcr.buffer_service import snapshot
+from silcr.buffer_service.service import checkpoint_path, open_replay, write_final_checkpoint
+from silcr.common.clients import InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
+from silcr.common.lifecycle import StopFlag
+from silcr.deploy.console import TrainingDisplay
+from silcr.learner.service import Learner
+
+log = logging.getLogger("train")
+
+# Added to the actors' seeds after a resume, once per transition already collected,
+# so that resumed actors do not replay the episodes of the first start.
+RESUME_SEED_STRIDE = 1_000_003
+
+
+def run_single_process(cfg: Config) -> int:
+    run_dir = cfg.run_dir
+    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
+    cfg.save(run_dir / "config.toml")
+    # The log goes to a file, as each component's does in a distributed run; the terminal shows the display.
+    logging.basicConfig(level=logging.INFO, filename=run_dir / "logs" / "single-process.log", force=True,
+                        format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
+    print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), "
+          f"{cfg.total_steps} env steps, single process)", flush=True)
+    stop = StopFlag().install_signal_handlers()
+    spec = EnvSpec.of(cfg.env)
+    try:
+        replay, _ = open_replay(cfg, spec)
+    except snapshot.SnapshotError as e:
+        print(f"silcr train: error: cannot resume: {e}", file=sys.stderr)
+        return 1
+    board = InProcessWeights()
+    learner = Learner(cfg, spec, board)
+    learner.start()  # the first weights are on the board before any actor acts
+    actor_cfg = cfg
+    if replay.transitions_received:
+        actor_cfg = Config(**cfg.to_dict() | {"seed": cfg.seed + RESUME_SEED_STRIDE * replay.transitions_received})
+    actors = [Actor(actor_cfg, spec, i, InProcessEpisodeWriter(replay),
+                    board.client(policy_factory(spec), random_initial_weights(actor_cfg, spec, actor_cfg.seed + i)()))
+              for i in range(cfg.actors)]
+    stream = InProcessBatchStream(replay, cfg.batches_per_request, cfg.batch_size, stop)
+    writer = snapshot.BackgroundWriter(checkpoint_path(cfg))
+    interval = cfg.buffer_checkpoint_interval
+    next_checkpoint = time.monotonic() + interval if interval > 0 else float("inf")
+    polled = [0] * len(actors)
+    finished = False
+    next_show = 0.0
+    with TrainingDisplay(cfg.total_steps) as display:
+        while not stop.is_set():
+            collecting = replay.transitions_received < cfg.total_steps
+            if collecting:
+                for i, actor in enumerate(actors):
+                    actor.step()
+                    if actor.steps - polled[i] >= cfg.weights_poll_steps:
+                        polled[i] = actor.steps
+                        actor.weights.update()
+            for batch in stream.due():
+                learner.step(batch)
+            learner.see(stream.last_meta)
+            learner.poll()
+            if learner.done(starved=not collecting):
+                finished = True
+                break
+            now = time.monotonic()
+            if now >= next_checkpoint:
+                writer.submit(snapshot.take(replay))
+                next_checkpoint = now + interval
+            if now >= next_show:
+                stats = learner.stats()
+                learner.record_scalars(stats)
+                display.show(replay.transitions_received, stats)
+                next_show = now + cfg.stats_interval
+        display.show(replay.transitions_received, learner.stats())
+    # Ctrl-C from here on would leave half-written checkpoints behind the atomic renames: finish first.
+    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    learner.finish(finished)
+    write_final_checkpoint(replay, writer)
+    for actor in actors:
+        actor.close()
+    if finished:
+        print(f"silcr train: done. progress: {run_dir / 'progress.csv'}; TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
+        return 0
+    print(f"silcr train: stopped ({stop.reason}) at {learner.updates} updates; checkpoints in {run_dir / 'checkpoints'}",
+          file=sys.stderr)
+    return 130
