@@ -18,7 +18,7 @@ from typing import Any, Mapping
 
 import tomli_w
 
-from silcr.common.envs import REWARD_MODES
+from silcr.common.envs import EPISODIC_IDS, REWARD_MODES
 from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
 
 ALGOS = ("silcr", "sac", "sqil")
@@ -298,5 +298,8 @@ def validate(cfg: Config, role: str) -> None:
             raise ConfigError("--demos", f"no such file: {cfg.demos}")
         if cfg.expert_admission != "return" and cfg.algo != "silcr":
             raise ConfigError("--expert-admission", f"only --algo silcr fills D_E from its own episodes (got --algo {cfg.algo})")
+    if cfg.env in EPISODIC_IDS and cfg.algo == "sac" and cfg.reward == "dense":
+        raise ConfigError("--reward", f"{cfg.env} is {EPISODIC_IDS[cfg.env]} with the episodic reward; for the dense "
+                                      f"reward use --env {EPISODIC_IDS[cfg.env]}")
     if cfg.learning_starts >= cfg.online_capacity:
         raise ConfigError("--learning-starts", f"must be below --online-capacity ({cfg.online_capacity})")

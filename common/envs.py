@@ -16,6 +16,8 @@ import numpy as np
 
 PAPER_TASKS = ("Swimmer-v5", "Hopper-v5", "HalfCheetah-v5", "Walker2d-v5", "Humanoid-v5")
 REWARD_MODES = ("episodic", "dense")
+#: The registered episodic ids and the task each wraps: `silcr/Hopper-v5` is Hopper-v5 with the episodic reward.
+EPISODIC_IDS = {f"silcr/{task}": task for task in PAPER_TASKS}
 
 
 class EpisodicReward(gym.Wrapper, gym.utils.RecordConstructorArgs):
@@ -49,6 +51,10 @@ def make_env(env_id: str, reward: str = "dense", **kwargs: Any) -> gym.Env:
     """Make `env_id` with dense or episodic reward; raise ValueError with a clear message on a bad id."""
     if reward not in REWARD_MODES:
         raise ValueError(f"reward must be one of {REWARD_MODES}, got {reward!r}")
+    if env_id in EPISODIC_IDS:
+        # The wrapper is applied below from `reward`, never twice: `silcr/<Task>` with reward
+        # "dense" is the plain task (evaluations score the dense return, which sums the same).
+        env_id = EPISODIC_IDS[env_id]
     try:
         env = gym.make(env_id, **kwargs)
     except gym.error.Error as e:
@@ -71,20 +77,22 @@ class EnvSpec:
     act_dim: int
     action_low: np.ndarray
     action_high: np.ndarray
-    max_episode_steps: int
+    max_episode_steps: int  # the time limit, or a generous bound (100,000) for an env without one
+    time_limit: int | None = None
 
     @staticmethod
     def of(env_id: str) -> "EnvSpec":
         env = make_env(env_id)
         try:
-            max_steps = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else 100_000
+            limit = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else None
             return EnvSpec(
                 env_id,
                 int(env.observation_space.shape[0]),
                 int(env.action_space.shape[0]),
                 np.asarray(env.action_space.low, dtype=np.float32),
                 np.asarray(env.action_space.high, dtype=np.float32),
-                int(max_steps),
+                int(limit or 100_000),
+                limit,
             )
         finally:
             env.close()

@@ -106,6 +106,11 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
             spec = EnvSpec.of(cfg.env)
         except ValueError as e:
             raise ConfigError("--env", str(e)) from None
+        if cfg.algo == "silcr" and role in ("train", "buffer") and spec.time_limit and cfg.expert_capacity < spec.time_limit:
+            # D_E admits whole episodes: one that never fits leaves it empty, and the learner waits forever.
+            raise ConfigError("--expert-capacity", f"{cfg.expert_capacity} transitions cannot hold one whole episode of "
+                                                   f"{cfg.env}, which runs up to {spec.time_limit} steps; D_E would stay "
+                                                   f"empty or stop admitting longer episodes. Use at least {spec.time_limit}")
         if cfg.demos and role in ("train", "buffer"):
             from pathlib import Path
 

@@ -73,6 +73,13 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
         (["buffer"], "--run"),
         (["actor", "--run", "x", "--connect", "nonsense"], "--connect"),
         (["learner", "--run", "x", "--batch-size", "1"], "--batch-size"),
+        # D_E keeps whole episodes: an M below the task's longest episode would leave it empty (Swimmer: 1,000 steps)
+        (["train", "--env", "Swimmer-v5", "--expert-capacity", "999"], "--expert-capacity"),
+        (["buffer", "--run", "x", "--env", "HalfCheetah-v5", "--expert-capacity", "500"], "--expert-capacity"),
+        # the registered episodic ids always pay the episodic reward: dense is asked for on the plain task
+        (["train", "--env", "silcr/Hopper-v5", "--algo", "sac", "--reward", "dense"], "--reward"),
+        (["train", "--algo", "sac", "--expert-admission", "recent"], "--expert-admission"),
+        (["train", "--tanh-log-prob", "approx"], "--tanh-log-prob"),
     ],
 )
 def test_bad_options_exit_2_with_one_line_and_no_traceback(args, needle):

@@ -73,6 +73,18 @@ def test_registered_episodic_tasks(task):
     env.close()
 
 
+def test_registered_episodic_ids_follow_the_requested_reward():
+    """`make_env("silcr/Hopper-v5", "dense")` (evaluation) is the plain task, never the episodic wrapper twice."""
+    dense = make_env("silcr/Hopper-v5", "dense")
+    episodic = make_env("silcr/Hopper-v5", "episodic")
+    assert not isinstance(dense, EpisodicReward) and isinstance(episodic, EpisodicReward)
+    assert not isinstance(episodic.env, EpisodicReward)
+    step_rewards, _, _ = _rollout(dense, steps=5)
+    assert all(r != 0.0 for r in step_rewards)  # Hopper's dense reward: alive bonus and progress at every step
+    dense.close()
+    episodic.close()
+
+
 def test_env_spec_and_action_rescaling():
     spec = EnvSpec.of("Humanoid-v5")
     assert (spec.obs_dim, spec.act_dim, spec.max_episode_steps) == (348, 17, 1000)

@@ -5,6 +5,7 @@ length at its end). A random policy balances for about 5 steps (return about 5);
 the full distributed system (router, buffer, learner, actor processes over Zenoh)
 with small networks reached returns of 200 and 1000 by 15,000 environment steps
 in two seeds, in about 1.5 minutes on the 2-core CPU machine (docs/testing.md).
+The same run with `--single-process` (one process, no Zenoh) must learn too.
 
 What it catches: a broken learner update, broken weight distribution to the
 actors, broken transitions (observations, actions, terminal flags) or a stalled
@@ -29,12 +30,14 @@ FINAL_RETURN_FLOOR = 50.0  # mean of the last two evaluations: 10x random (singl
 
 
 @pytest.mark.slow
-def test_silcr_learns_inverted_pendulum_from_episodic_reward(tmp_path):
+@pytest.mark.parametrize("launcher", ["distributed", "single-process"])
+def test_silcr_learns_inverted_pendulum_from_episodic_reward(tmp_path, launcher):
     procs = Processes(tmp_path)
     run = "learning"
+    how = ["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"] if launcher == "distributed" else ["--single-process"]
     train = procs.start(
-        "train", "train", "--run", run, "--runs-dir", str(tmp_path / "runs"),
-        "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--env", "InvertedPendulum-v5", "--algo", "silcr",
+        "train", "train", "--run", run, "--runs-dir", str(tmp_path / "runs"), *how,
+        "--env", "InvertedPendulum-v5", "--algo", "silcr",
         "--actors", "2", "--seed", "1", "--total-steps", "15000", "--learning-starts", "1000",
         "--hidden", "64", "64", "--eval-interval", "3000", "--eval-episodes", "5",
     )
@@ -47,4 +50,5 @@ def test_silcr_learns_inverted_pendulum_from_episodic_reward(tmp_path):
     assert returns[0] < RANDOM_RETURN_CEILING, returns
     assert max(returns) >= BEST_RETURN_FLOOR, f"SILCR did not learn: eval returns {returns}"
     assert sum(returns[-2:]) / 2 >= FINAL_RETURN_FLOOR, f"SILCR did not keep what it learned: eval returns {returns}"
+    assert rows[-1]["q_bound_exceeded"] == "0" and "diverging" not in procs.log("train")  # healthy critics
     assert procs.orphans == []

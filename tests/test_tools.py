@@ -96,6 +96,20 @@ def test_eval_rejects_a_corrupt_checkpoint(tmp_path):
     assert r.returncode == 2 and "corrupt" in r.stderr and "Traceback" not in r.stderr
 
 
+def test_a_checkpoint_that_would_run_code_is_refused_without_running_it(tmp_path):
+    """Checkpoints are pickles: `silcr eval` on a file from elsewhere must not execute what it names."""
+    marker = tmp_path / "ran"
+    evil = tmp_path / "evil.pt"
+    code = (f"import os, torch\nclass Evil:\n    def __reduce__(self):\n        return (os.system, ('touch {marker}',))\n"
+            f"torch.save({{'sac': Evil(), 'counters': {{}}, 'config': {{}}}}, {str(evil)!r})\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "eval", str(evil)], capture_output=True, text=True, cwd=REPO,
+                       timeout=60)
+    assert r.returncode == 2 and "could run code" in r.stderr and "Traceback" not in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not marker.exists()
+
+
 def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
     from silcr.common.config import Config
 

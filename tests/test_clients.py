@@ -1,0 +1,102 @@
+"""The protocol clients' own rules, in-process: weights versions and incarnations, unusable weights,
+the in-process batch stream's ratio, buffer restarts, and zero-copy batches without warnings."""
+
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+import torch
+
+from silcr.actor.policy import NumpyPolicy, initial_weights
+from silcr.buffer_service.service import ReplayState
+from silcr.common import protocol as P
+from silcr.common.clients import BatchStream, InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
+from tests.conftest import make_episode
+
+OBS, ACT = 4, 1
+
+
+def _policy(w: P.Weights) -> NumpyPolicy:
+    return NumpyPolicy(w, OBS, ACT)
+
+
+def _weights(version: int, incarnation: int, seed: int = 0) -> P.Weights:
+    w = initial_weights(OBS, ACT, [8], seed)
+    return P.Weights(version, w.params, w.arch, incarnation=incarnation)
+
+
+def test_actors_follow_a_restarted_learner_whose_versions_start_lower():
+    """A learner restarted from an older checkpoint (or none) counts versions from there: a new incarnation wins."""
+    board = InProcessWeights()
+    board.publish(_weights(100, incarnation=1))
+    client = board.client(_policy, initial_weights(OBS, ACT, [8], 9))
+    assert client.version == 100
+    board.publish(_weights(99, incarnation=1))  # older weights of the same learner: ignored
+    assert not client.update() and client.version == 100
+    board.publish(_weights(5, incarnation=2, seed=1))  # the restarted learner
+    assert client.update() and client.version == 5 and client.weights.incarnation == 2
+    np.testing.assert_array_equal(client.policy.layers[0][0], _weights(5, 2, seed=1).params["trunk.0.weight"].T)
+    board.publish(_weights(6, incarnation=2, seed=2))
+    assert client.update() and client.version == 6
+
+
+@pytest.mark.parametrize("broken", ["log_std.weight", "log_std.bias", "mean.bias", "trunk.0.weight"])
+def test_weights_with_a_misshapen_layer_are_rejected_and_counted(broken):
+    board = InProcessWeights()
+    client = board.client(_policy, _weights(1, incarnation=1))
+    bad = _weights(2, incarnation=1)
+    shape = bad.params[broken].shape
+    bad.params[broken] = np.zeros((shape[0] + 1, *shape[1:]), np.float32)
+    board.publish(bad)
+    assert not client.update()  # no exception reaches the actor
+    assert client.rejected == 1 and client.version == 1
+    client.policy.sample(np.zeros((2, OBS), np.float32), np.random.default_rng(0))  # still acts
+
+
+def _replay(**over) -> ReplayState:
+    cfg = Config(run="t", env="InvertedPendulum-v5", learning_starts=20, batch_size=8, expert_capacity=200, **over)
+    return ReplayState(cfg, EnvSpec.of("InvertedPendulum-v5"))
+
+
+def test_the_in_process_stream_keeps_exactly_the_ratio():
+    replay = _replay(samples_per_insert=0.5)
+    writer = InProcessEpisodeWriter(replay)
+    stream = InProcessBatchStream(replay, batches_per_request=4, batch_size=8)
+    assert list(stream.due()) == [] and stream.not_ready == 1  # warming up: 20 transitions or fewer
+    for seq, length in enumerate((10, 10, 10, 30, 7)):
+        writer.write(make_episode(length, ret=1.0, seq=seq))
+        for batch in stream.due():
+            assert 1 <= batch.meta["batches"] <= 4
+        # never ahead, never behind: half an update per transition after the first 20
+        assert stream.batches == max(0, int((replay.transitions_received - 20) * 0.5))
+    assert replay.transitions_received == 67 and stream.batches == 23 and replay.limiter.due() == 0
+
+
+def test_a_buffer_that_restarted_from_an_older_checkpoint_is_counted():
+    stream = BatchStream()
+    for steps in (100, 250, 180, 300):
+        stream._account(P.BatchReply("not_ready", {"env_steps": steps}, reason="warmup"))
+    assert stream.buffer_restarts == 1 and stream.transitions_lost == 70
+    assert stream.not_ready == 4 and not stream.rate_limited
+    stream._account(P.BatchReply("not_ready", {"env_steps": 300}, reason="rate_limited"))
+    assert stream.rate_limited
+
+
+def test_a_decoded_batch_trains_without_the_read_only_warning():
+    """Decoded replies are read-only views of the message; the learner uses them without a copy or a warning."""
+    from silcr.learner.service import batch_tensors
+
+    replay = _replay()
+    for i in range(5):
+        replay.store(make_episode(10, ret=float(i), seq=i))
+    reply = P.BatchReply.decode(replay.sample(P.SampleRequest(2, 8)).encode())
+    assert not reply.arrays["obs"].flags.writeable
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        t = batch_tensors(reply.arrays, torch.device("cpu"))
+    assert t["obs"].data_ptr() == reply.arrays["obs"].ctypes.data  # the same memory: no copy
+    assert t["obs"].shape == (16, OBS)

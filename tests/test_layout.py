@@ -1,0 +1,91 @@
+"""The package's shape: one installed name, `silcr`, its data files, and common/ below every component.
+
+The install test builds a wheel of this checkout and installs it (not editable) into a
+fresh virtual environment that borrows this one's dependencies, then runs silcr from a
+directory holding a `common/` package of its own: before the namespace, silcr installed
+`common`, `bench` and `deploy` at the top level and `silcr sweep` started its cells
+with `python -m common.cli`, which picked up the wrong `common` there.
+"""
+
+from __future__ import annotations
+
+import ast
+import os
+import site
+import subprocess
+import sys
+import venv
+from pathlib import Path
+
+import pytest
+
+from tests.helpers import REPO, free_port
+
+COMPONENTS = ("silcr.actor", "silcr.learner", "silcr.buffer_service", "silcr.deploy", "silcr.bench", "silcr.cli",
+              "silcr.plot", "silcr.policy_commands")
+
+
+def _imports(path: Path) -> set[str]:
+    names: set[str] = set()
+    for node in ast.walk(ast.parse(path.read_text())):
+        if isinstance(node, ast.Import):
+            names.update(a.name for a in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.module and node.level == 0:
+            names.add(node.module)
+    return names
+
+
+@pytest.mark.parametrize("module", sorted(p.name for p in (REPO / "common").glob("*.py")))
+def test_common_imports_no_component(module):
+    bad = {n for n in _imports(REPO / "common" / module) if n.startswith(COMPONENTS)}
+    assert not bad, f"common/{module} imports {bad}: common/ must stay below every component"
+
+
+@pytest.fixture(scope="module")
+def installed(tmp_path_factory):
+    """A fresh venv with silcr installed from a wheel of this checkout (its dependencies borrowed from this venv)."""
+    tmp = tmp_path_factory.mktemp("install")
+    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
+                    str(tmp / "wheel"), str(REPO)], check=True, timeout=300, capture_output=True)
+    wheel = next((tmp / "wheel").glob("silcr-*.whl"))
+    env_dir = tmp / "venv"
+    venv.create(env_dir, with_pip=True)
+    bin_dir = env_dir / "bin"
+    py = bin_dir / "python"
+    target = Path(subprocess.run([py, "-c", "import sysconfig; print(sysconfig.get_paths()['purelib'])"],
+                                 capture_output=True, text=True, check=True).stdout.strip())
+    before = set(os.listdir(target))
+    # torch, zenoh, mujoco and the rest come from this venv's site-packages, after the fresh one's own.
+    (target / "zz_borrowed_deps.pth").write_text("\n".join(site.getsitepackages()) + "\n")
+    subprocess.run([py, "-m", "pip", "install", "-q", "--no-deps", "--no-index", str(wheel)], check=True, timeout=300,
+                   capture_output=True)
+    added = set(os.listdir(target)) - before - {"zz_borrowed_deps.pth"}
+    # Run from a directory with a `common` package that must not be picked up.
+    work = tmp / "work"
+    (work / "common").mkdir(parents=True)
+    (work / "common" / "__init__.py").write_text("raise ImportError('this is the other project\\'s common')\n")
+    (work / "common" / "cli.py").write_text("raise SystemExit('the other project\\'s common.cli ran')\n")
+    env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
+    env["PATH"] = f"{bin_dir}{os.pathsep}{env.get('PATH', '')}"
+    return {"added": added, "target": target, "bin": bin_dir, "work": work, "env": env}
+
+
+def test_installing_adds_exactly_one_top_level_name_and_the_data_files(installed):
+    names = {n for n in installed["added"] if not n.endswith(".dist-info") and n != "__pycache__"}
+    assert names == {"silcr"}, installed["added"]
+    deploy = installed["target"] / "silcr" / "deploy"
+    for data in ("zenoh/router-tls-acl.json5", "zenoh/client-tls.json5", "config/silcr.toml", "make-certs.sh",
+                 "docker-compose.yml", "Dockerfile"):
+        assert (deploy / data).is_file(), data
+
+
+def test_the_installed_silcr_runs_beside_another_projects_common(installed, tmp_path):
+    run = lambda *args: subprocess.run([str(installed["bin"] / "silcr"), *args], capture_output=True, text=True,  # noqa: E731
+                                       cwd=installed["work"], env=installed["env"], timeout=300)
+    r = run("sweep", str(REPO / "experiments" / "hopper-30k.toml"), "--dry-run", "--runs-dir", str(tmp_path / "sweep"))
+    assert r.returncode == 0 and "9 cells" in r.stdout, r.stdout + r.stderr
+    r = run("train", "--env", "InvertedPendulum-v5", "--hidden", "16", "16", "--learning-starts", "200",
+            "--total-steps", "1200", "--eval-interval", "600", "--eval-episodes", "1", "--runs-dir", str(tmp_path),
+            "--run", "installed", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}")
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert (tmp_path / "installed" / "progress.csv").read_text().count("\n") >= 3

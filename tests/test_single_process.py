@@ -1,0 +1,89 @@
+"""`silcr train --single-process`: reproducible to the last digit, Ctrl-C safe, and the divergence watch.
+
+The learning comparison with the distributed launcher is in test_learning.py.
+"""
+
+from __future__ import annotations
+
+import csv
+import signal
+import subprocess
+import sys
+import time
+
+from silcr.learner.checkpoint import load_checkpoint
+from tests.helpers import REPO, Processes, wait_for
+
+WALL_CLOCK_COLUMNS = {"time", "updates_per_s"}
+SMALL = ["--env", "InvertedPendulum-v5", "--hidden", "32", "32", "--learning-starts", "500", "--eval-interval", "1000",
+         "--eval-episodes", "2", "--actors", "2", "--envs-per-actor", "2", "--weights-interval", "20",
+         "--checkpoint-interval", "1000"]
+
+
+def _train(tmp_path, run: str, *extra: str) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "silcr.cli", "train", "--single-process", "--run", run,
+                           "--runs-dir", str(tmp_path), *extra], capture_output=True, text=True, cwd=REPO, timeout=600)
+
+
+def _rows(path) -> list[dict[str, str]]:
+    return list(csv.DictReader(open(path)))
+
+
+def test_the_same_seed_gives_the_same_progress_csv(tmp_path):
+    runs = {}
+    for name, seed in [("a", "3"), ("b", "3"), ("other-seed", "4")]:
+        r = _train(tmp_path, name, *SMALL, "--total-steps", "3000", "--seed", seed)
+        assert r.returncode == 0, r.stdout + r.stderr
+        runs[name] = _rows(tmp_path / name / "progress.csv")
+    a, b = runs["a"], runs["b"]
+    assert len(a) == len(b) >= 4
+    for ra, rb in zip(a, b):
+        assert {k: v for k, v in ra.items() if k not in WALL_CLOCK_COLUMNS} == \
+               {k: v for k, v in rb.items() if k not in WALL_CLOCK_COLUMNS}
+    # Not a constant: another seed gives other numbers, and the run did train.
+    assert [r["eval_return"] for r in runs["other-seed"]] != [r["eval_return"] for r in a]
+    assert int(a[-1]["updates"]) >= 2500 and float(a[-1]["q_mean"]) != 0.0
+    assert all(r["q_bound_exceeded"] == "0" for r in a)  # a healthy run: the divergence counter stays at 0
+
+
+def test_ctrl_c_leaves_checkpoints_and_resume_finishes_the_run(tmp_path):
+    procs = Processes(tmp_path)
+    args = ["train", "--single-process", "--run", "cut", "--runs-dir", str(tmp_path), *SMALL, "--total-steps", "6000",
+            "--buffer-checkpoint-interval", "0"]
+    ckpt = tmp_path / "cut" / "checkpoints" / "learner.pt"
+    try:
+        train = procs.start("train1", *args, new_session=True)
+        wait_for(lambda: ckpt.exists() and load_checkpoint(ckpt)["counters"]["updates"] >= 1000, 240,
+                 "a learner checkpoint")
+        train.send_signal(signal.SIGINT)
+        assert train.wait(60) == 130, procs.log("train1")
+        stopped_at = load_checkpoint(ckpt)["counters"]["updates"]
+        assert stopped_at < 5500
+        assert sorted(p.name for p in ckpt.parent.iterdir()) == ["buffer.ckpt", "learner.pt"]  # no temporary file
+        train = procs.start("train2", *args, "--resume")
+        assert train.wait(300) == 0, procs.log("train2")
+    finally:
+        procs.stop_all()
+    assert procs.orphans == []
+    log = (tmp_path / "cut" / "logs" / "single-process.log").read_text()
+    assert "resumed from" in log and "restored D_O" in log
+    rows = _rows(tmp_path / "cut" / "progress.csv")
+    updates = [int(r["updates"]) for r in rows]
+    assert updates == sorted(updates) and updates[-1] >= 5500 > stopped_at
+
+
+def test_a_diverging_learner_is_counted_and_warned_about(tmp_path):
+    """Provoked on purpose: Polyak rate 1 (no target network) and a 10x learning rate, no clipping."""
+    t0 = time.monotonic()
+    r = _train(tmp_path, "diverge", "--env", "Hopper-v5", "--hidden", "256", "256", "--tau", "1", "--lr", "0.003",
+               "--grad-clip", "0", "--learning-starts", "1000", "--total-steps", "4000", "--eval-interval", "1000",
+               "--eval-episodes", "1", "--seed", "0")
+    assert r.returncode == 0, r.stdout + r.stderr
+    warnings = [line for line in r.stdout.splitlines() if "warning: the critics are diverging" in line]
+    assert len(warnings) == 1, r.stdout  # printed once, when the bound is first passed
+    rows = _rows(tmp_path / "diverge" / "progress.csv")
+    exceeded = [int(r["q_bound_exceeded"]) for r in rows]
+    assert exceeded == sorted(exceeded) and exceeded[-1] > 100, exceeded
+    last = rows[-1]
+    assert float(last["q_max"]) > 1.5 * float(last["q_bound"])
+    assert time.monotonic() - t0 < 300
