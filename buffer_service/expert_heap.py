@@ -160,22 +160,30 @@ class ExpertHeap:
         return [e[2] for e in self._heap]
 
     def entries(self) -> list[tuple[float, int, Episode]]:
-        """(key, admission order, episode) of every stored episode, for checkpoints."""
+        """(key, admission order, episode) of every stored episode."""
         return list(self._heap)
 
-    def restore(self, entries: list[tuple[float, int, Episode]], admitted: int, rejected: int, evicted: int) -> None:
-        """Refill an empty heap from `entries()` of a checkpoint, keeping the eviction order."""
+    def state(self) -> dict:
+        """What a checkpoint keeps: every entry with its key and admission order (the eviction order), and the counters."""
+        return {"admission": self.admission, "entries": [[ep, key, order] for key, order, ep in self._heap],
+                "admitted": self.admitted, "rejected": self.rejected, "evicted": self.evicted}
+
+    def restore(self, state: dict) -> None:
+        """Refill an empty D_E from `state()`, keeping the eviction order."""
         if self._heap:
             raise RuntimeError("restore needs an empty expert buffer")
+        if state["admission"] != self.admission:
+            raise ValueError(f"the checkpointed D_E ranks episodes by {state['admission']}, this one by {self.admission}")
+        entries = [(float(key), int(order), ep) for ep, key, order in state["entries"]]
         total = sum(e[2].length for e in entries)
         if total > self.capacity:
             raise ValueError(f"checkpointed D_E holds {total} transitions, more than M = {self.capacity}")
-        self._heap = [(ret, order, self._store(ep)) for ret, order, ep in entries]
+        self._heap = [(key, order, self._store(ep)) for key, order, ep in entries]
         heapq.heapify(self._heap)
         self._order = itertools.count(max((e[1] for e in entries), default=-1) + 1)
         self._transitions = total
         self._return_range = None
-        self.admitted, self.rejected, self.evicted = admitted, rejected, evicted
+        self.admitted, self.rejected, self.evicted = int(state["admitted"]), int(state["rejected"]), int(state["evicted"])
 
     def returns(self) -> list[float]:
         return [e[2].episode_return for e in self._heap]

@@ -91,6 +91,20 @@ class OnlineFifo:
     def episodes(self) -> list[Episode]:
         return [e[1] for e in self._episodes]
 
+    def state(self) -> dict:
+        """What a checkpoint keeps: the episodes, oldest first, and the counters."""
+        return {"episodes": self.episodes(), "evicted_episodes": self.evicted_episodes,
+                "evicted_for_rows": self.evicted_for_rows}
+
+    def restore(self, state: dict) -> None:
+        """Refill an empty FIFO from `state()`."""
+        if self._episodes:
+            raise RuntimeError("restore needs an empty online buffer")
+        for ep in state["episodes"]:
+            self.add(ep)
+        self.evicted_episodes = int(state["evicted_episodes"])
+        self.evicted_for_rows = int(state["evicted_for_rows"])
+
     def gather(self, n: int, rng: np.random.Generator, out: dict[str, np.ndarray], rows: slice | np.ndarray,
                rewards: bool) -> None:
         """Draw `n` transitions uniformly (with replacement) into `out[...][rows]`."""

@@ -86,6 +86,12 @@ class SamplesPerInsertLimiter:
             self._paused = self.error > self.centre + self.tolerance
         return self._paused
 
+    def state(self) -> dict:
+        return {"inserts": self.inserts, "samples": self.samples, "paused": self._paused}
+
+    def restore(self, state: dict) -> None:
+        self.inserts, self.samples, self._paused = int(state["inserts"]), int(state["samples"]), bool(state["paused"])
+
     def observed_samples_per_insert(self) -> float:
         after_warmup = self.inserts - self.min_size_to_sample
         return self.samples / after_warmup if after_warmup > 0 else 0.0

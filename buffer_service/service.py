@@ -153,6 +153,33 @@ class ReplayState:
                               "online_rows": online_rows(req.batch_size, self.heap is not None)}
         return P.BatchReply("ok", meta, arrays)
 
+    # -- checkpoints ------------------------------------------------------------
+    COUNTERS = ("episodes_received", "transitions_received", "batches_served", "sample_requests",
+                "sample_requests_rejected", "not_ready_replies", "last_episode_version")
+
+    def state(self) -> dict[str, Any]:
+        """Everything a restart needs, each table and the limiter providing its own part (`snapshot` writes it)."""
+        return {
+            "counters": {name: getattr(self, name) for name in self.COUNTERS} | {"rejections": dict(self.rejections)},
+            "last_seq": [[a, inc, seq] for (a, inc), seq in self.last_seq.items()],
+            "fifo": self.fifo.state(),
+            # SQIL's D_E is the demonstrations, loaded again from --demos at every start.
+            "heap": self.heap.state() if self.heap is not None and self.cfg.algo == "silcr" else None,
+            "limiter": self.limiter.state(),
+        }
+
+    def restore(self, state: dict[str, Any]) -> None:
+        """Fill this fresh state from `state()`."""
+        c = state["counters"]
+        for name in self.COUNTERS:
+            setattr(self, name, int(c[name]))
+        self.rejections.update(c["rejections"])
+        self.last_seq = {(int(a), int(inc)): int(seq) for a, inc, seq in state["last_seq"]}
+        self.fifo.restore(state["fifo"])
+        if state["heap"] is not None and self.heap is not None and self.cfg.algo == "silcr":
+            self.heap.restore(state["heap"])
+        self.limiter.restore(state["limiter"])
+
     # -- stats ------------------------------------------------------------------
     def stats(self) -> dict[str, Any]:
         heap = self.heap
@@ -244,6 +271,12 @@ class Inbox:
         with self._cond:
             return len(self._episodes), len(self._queries)
 
+    def state(self) -> dict[str, int]:
+        return {"blocked_puts": self.blocked_puts, "dropped_at_close": self.dropped_at_close}
+
+    def restore(self, state: dict[str, int]) -> None:
+        self.blocked_puts, self.dropped_at_close = int(state["blocked_puts"]), int(state["dropped_at_close"])
+
     def close(self) -> list[Any]:
         """Stop accepting; return the queries still waiting so they can be finalized."""
         with self._cond:
@@ -258,37 +291,34 @@ def checkpoint_path(cfg: Config) -> Path:
     return cfg.run_dir / "checkpoints" / "buffer.ckpt"
 
 
-def open_replay(cfg: Config, spec: EnvSpec) -> tuple[ReplayState, dict[str, Any]]:
-    """The buffer's state, restored from its checkpoint with --resume when there is one.
+def open_replay(cfg: Config, spec: EnvSpec) -> tuple[ReplayState, snapshot.Snapshot | None]:
+    """The buffer's state, restored from its checkpoint with --resume when there is one (and that snapshot).
 
-    Returns it and what the stats say about the restore (empty on a fresh start).
     Raises `snapshot.SnapshotError` for a checkpoint that cannot be used: a run
     refuses to start rather than silently begin empty (the file is kept for inspection).
     """
     state = ReplayState(cfg, spec)
     path = checkpoint_path(cfg)
     if not cfg.resume:
-        return state, {}
+        return state, None
     if not path.exists():
         log.info("--resume: no buffer checkpoint at %s yet; starting empty", path)
-        return state, {}
+        return state, None
     t0 = time.monotonic()
     snap = snapshot.restore(path, state)
-    restored = {"restored_transitions": snap.transitions,
-                "restored_checkpoint_age_s": time.time() - snap.header["written_at"]}
     log.info("restored D_O (%d transitions) and D_E (%d) from %s in %.1fs; it was written %.0fs ago at %d "
              "transitions received; anything received after that was lost", len(state.fifo),
              len(state.heap) if state.heap is not None else 0, path, time.monotonic() - t0,
-             restored["restored_checkpoint_age_s"], snap.transitions)
-    return state, restored
+             time.time() - snap.header["written_at"], snap.transitions)
+    return state, snap
 
 
-def write_final_checkpoint(state: ReplayState, writer: snapshot.BackgroundWriter) -> None:
+def write_final_checkpoint(state: ReplayState, writer: snapshot.BackgroundWriter, **parts: snapshot.Part) -> None:
     """A last checkpoint on the way out, so a clean stop (Ctrl-C, end of run) loses nothing."""
     writer.join()
     t0 = time.monotonic()
     try:
-        snapshot.write(writer.path, snapshot.take(state))
+        snapshot.write(writer.path, snapshot.take(state, writer=writer, **parts))
         log.info("checkpoint of %d transitions written to %s in %.1fs", state.transitions_received, writer.path,
                  time.monotonic() - t0)
     except OSError as e:
@@ -300,14 +330,20 @@ def write_final_checkpoint(state: ReplayState, writer: snapshot.BackgroundWriter
 def run_buffer(cfg: Config, stop: StopFlag) -> int:
     spec = EnvSpec.of(cfg.env)
     try:
-        state, restored = open_replay(cfg, spec)
+        state, snap = open_replay(cfg, spec)
     except snapshot.SnapshotError as e:
         log.error("cannot resume: %s", e)
         return 1
     keys = P.Keys(cfg.run)
     inbox = Inbox()
-    ckpt_path = checkpoint_path(cfg)
-    writer = snapshot.BackgroundWriter(ckpt_path)
+    writer = snapshot.BackgroundWriter(checkpoint_path(cfg))
+    restored: dict[str, Any] = {}
+    if snap is not None:
+        for name, part in (("inbox", inbox), ("writer", writer)):
+            if name in snap.parts:
+                part.restore(snap.parts[name])
+        restored = {"restored_transitions": snap.transitions,
+                    "restored_checkpoint_age_s": time.time() - snap.header["written_at"]}
     log.info(
         "buffer for run %s: %s, algo %s, D_O %d, D_E %s, learning starts after %d transitions",
         cfg.run, cfg.env, cfg.algo, cfg.online_capacity, state.heap.capacity if state.heap is not None else "-", cfg.learning_starts,
@@ -353,7 +389,7 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
                 throttle.send(now_paused)
                 paused = now_paused
             if now >= next_checkpoint:
-                writer.submit(snapshot.take(state))
+                writer.submit(snapshot.take(state, inbox=inbox, writer=writer))
                 next_checkpoint = now + interval
             if now >= next_stats:
                 stats = state.stats()
@@ -377,7 +413,7 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
             with q:
                 q.reply_err(b"buffer service is shutting down")
         token.undeclare()
-        write_final_checkpoint(state, writer)
+        write_final_checkpoint(state, writer, inbox=inbox)
         log.info(
             "buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d batches served",
             stop.reason, state.episodes_received, state.transitions_received,

@@ -1,26 +1,31 @@
-"""Buffer checkpoints: D_O, D_E, the rate limiter and the counters in one file.
+"""Buffer checkpoints: the file format, and the thread that writes them.
+
+What goes in is not decided here: `ReplayState.state()` gathers it, each part
+(D_O, D_E, the rate limiter, the counters) providing its own, and
+`ReplayState.restore()` puts it back. Other parts of the service (the inbox's and
+the writer's counters) ride along by name. This module only stores that structure.
 
 Layout: a msgpack stream, written atomically (temporary file, fsync, rename), so
 a crash while checkpointing leaves the previous checkpoint usable:
 
-1. a header map: `v`, `kind` ("silcr-buffer"), `env`, `algo`, `written_at`, the
-   counters, the limiter state, the duplicate-detection table, and the two tables
-   as lists of episode indices (D_E entries also carry return and admission order);
-2. the episodes, each once as an `EpisodeCodec` message, even when both D_O and
-   D_E hold it (in memory each table has its own copy, for vectorised sampling;
-   in the file it is stored once and referenced from both tables).
+1. a header map: `v`, `kind` ("silcr-buffer"), `env`, `algo`, `written_at`,
+   `transitions` (received when it was taken), `state` and `parts`, where every
+   episode is replaced by `{"episode": i}`, an index into the list that follows;
+2. the episodes, each once as an `EpisodeCodec` message, even when D_O and D_E
+   both hold it (in memory each table has its own copy, for vectorised sampling).
 
 Loading re-validates every episode against the run's env with the same codec
 that guards the network, so a corrupt or foreign file is refused with one line.
+Files of version 1 (silcr 0.1, which wrote the tables' fields one by one) are read too.
 """
 
 from __future__ import annotations
 
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO
+from typing import TYPE_CHECKING, Any, BinaryIO, Protocol
 
 import msgpack
 
@@ -31,11 +36,18 @@ if TYPE_CHECKING:
     from .service import ReplayState
 
 SNAPSHOT_KIND = "silcr-buffer"
-SNAPSHOT_VERSION = 1
+SNAPSHOT_VERSION = 2
+_EPISODE = "episode"  # the marker key standing for an episode in the header
 
 
 class SnapshotError(RuntimeError):
     pass
+
+
+class Part(Protocol):
+    def state(self) -> dict: ...
+
+    def restore(self, state: dict) -> None: ...
 
 
 @dataclass
@@ -49,10 +61,11 @@ class Snapshot:
     header: dict[str, Any]
     episodes: list[P.Episode]
     locks: tuple[threading.Lock, ...] = ()
+    parts: dict[str, dict] = field(default_factory=dict)
 
     @property
     def transitions(self) -> int:
-        return int(self.header["counters"]["transitions_received"])
+        return int(self.header["transitions"])
 
 
 def _identity(ep: P.Episode) -> tuple:
@@ -61,7 +74,28 @@ def _identity(ep: P.Episode) -> tuple:
     return ep.actor_id, ep.incarnation, ep.seq, ep.length, ep.episode_return
 
 
-def take(state: "ReplayState") -> Snapshot:
+def _replace_episodes(obj: Any, ref) -> Any:
+    if isinstance(obj, P.Episode):
+        return {_EPISODE: ref(obj)}
+    if isinstance(obj, dict):
+        return {k: _replace_episodes(v, ref) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [_replace_episodes(v, ref) for v in obj]
+    return obj
+
+
+def _put_episodes_back(obj: Any, episodes: list[P.Episode]) -> Any:
+    if isinstance(obj, dict):
+        if obj.keys() == {_EPISODE}:
+            return episodes[obj[_EPISODE]]
+        return {k: _put_episodes_back(v, episodes) for k, v in obj.items()}
+    if isinstance(obj, list):
+        return [_put_episodes_back(v, episodes) for v in obj]
+    return obj
+
+
+def take(state: "ReplayState", **parts: Part) -> Snapshot:
+    """A snapshot of `state` and of the named `parts` (anything with `state()`), in the service thread."""
     episodes: list[P.Episode] = []
     index: dict[tuple, int] = {}
 
@@ -72,34 +106,18 @@ def take(state: "ReplayState") -> Snapshot:
             episodes.append(ep)
         return index[key]
 
-    fifo_ids = [ref(ep) for ep in state.fifo.episodes()]
-    heap = state.heap if state.cfg.algo == "silcr" else None  # SQIL's D_E is reloaded from --demos
-    heap_entries = [[ref(ep), float(ret), int(order)] for ret, order, ep in heap.entries()] if heap else []
-    lim = state.limiter
     header = {
         "v": SNAPSHOT_VERSION,
         "kind": SNAPSHOT_KIND,
         "env": state.spec.env_id,
         "algo": state.cfg.algo,
-        "expert_admission": heap.admission if heap else None,
         "written_at": time.time(),
-        "counters": {
-            "episodes_received": state.episodes_received,
-            "transitions_received": state.transitions_received,
-            "batches_served": state.batches_served,
-            "sample_requests": state.sample_requests,
-            "last_episode_version": state.last_episode_version,
-            "rejections": dict(state.rejections),
-            "fifo_evicted": state.fifo.evicted_episodes,
-            "heap": [heap.admitted, heap.rejected, heap.evicted] if heap else [0, 0, 0],
-        },
-        "limiter": {"inserts": lim.inserts, "samples": lim.samples},
-        "last_seq": [[a, inc, seq] for (a, inc), seq in state.last_seq.items()],
-        "fifo": fifo_ids,
-        "heap": heap_entries,
-        "n_episodes": len(episodes),
+        "transitions": state.transitions_received,
+        "state": _replace_episodes(state.state(), ref),
+        "parts": {name: part.state() for name, part in parts.items()},
     }
-    locks = (state.fifo.storage.lock,) + ((heap.storage.lock,) if heap else ())
+    header["n_episodes"] = len(episodes)
+    locks = (state.fifo.storage.lock,) + ((state.heap.storage.lock,) if state.heap is not None else ())
     return Snapshot(header, episodes, locks)
 
 
@@ -120,23 +138,40 @@ def write(path: Path, snap: Snapshot) -> None:
     write_atomic(path, body)
 
 
+def _state_from_v1(header: dict[str, Any]) -> dict[str, Any]:
+    """A version-1 header (silcr 0.1) as today's `ReplayState.state()` layout."""
+    c = header["counters"]
+    return {
+        "counters": {"episodes_received": c["episodes_received"], "transitions_received": c["transitions_received"],
+                     "batches_served": c["batches_served"], "sample_requests": c["sample_requests"],
+                     "sample_requests_rejected": 0, "not_ready_replies": 0,
+                     "last_episode_version": c["last_episode_version"], "rejections": c["rejections"]},
+        "last_seq": header["last_seq"],
+        "fifo": {"episodes": [{_EPISODE: i} for i in header["fifo"]], "evicted_episodes": c["fifo_evicted"],
+                 "evicted_for_rows": 0},
+        "heap": {"admission": "return", "entries": [[{_EPISODE: i}, ret, order] for i, ret, order in header["heap"]],
+                 "admitted": c["heap"][0], "rejected": c["heap"][1], "evicted": c["heap"][2]}
+        if header["algo"] == "silcr" else None,
+        "limiter": {"inserts": header["limiter"]["inserts"], "samples": header["limiter"]["samples"], "paused": False},
+    }
+
+
 def restore(path: Path, state: "ReplayState") -> Snapshot:
-    """Load `path` into a fresh `state`; raise `SnapshotError` naming the problem."""
+    """Load `path` into a fresh `state`; raise `SnapshotError` naming the problem.
+
+    The returned snapshot's `parts` hold the named parts' states, for the caller to restore.
+    """
     try:
         with open(path, "rb") as f:
             unpacker = msgpack.Unpacker(f, raw=False, max_buffer_size=2 * state.codec.max_bytes)
             header = next(unpacker)
             if not isinstance(header, dict) or header.get("kind") != SNAPSHOT_KIND:
                 raise SnapshotError(f"{path} is not a silcr buffer checkpoint")
-            if header.get("v") != SNAPSHOT_VERSION:
+            if header.get("v") not in (1, SNAPSHOT_VERSION):
                 raise SnapshotError(f"{path}: checkpoint version {header.get('v')} is not supported")
             if header["env"] != state.spec.env_id or header["algo"] != state.cfg.algo:
                 raise SnapshotError(f"{path} is for {header['algo']} on {header['env']}, this run is "
                                     f"{state.cfg.algo} on {state.spec.env_id}")
-            admission = state.heap.admission if state.cfg.algo == "silcr" and state.heap is not None else None
-            if state.cfg.algo == "silcr" and header.get("expert_admission", "return") != admission:
-                raise SnapshotError(f"{path} ranks D_E by {header.get('expert_admission', 'return')}, this run by "
-                                    f"{admission} (--expert-admission)")
             episodes = []
             for _ in range(int(header["n_episodes"])):
                 payload = next(unpacker)
@@ -151,24 +186,19 @@ def restore(path: Path, state: "ReplayState") -> Snapshot:
         raise SnapshotError(f"{path} is unreadable or corrupt ({type(e).__name__}: {e})") from None
 
     try:
-        for i in header["fifo"]:
-            state.fifo.add(episodes[i])
-        c = header["counters"]
-        if state.cfg.algo == "silcr" and state.heap is not None:
-            state.heap.restore([(ret, order, episodes[i]) for i, ret, order in header["heap"]], *c["heap"])
-        state.fifo.evicted_episodes = int(c["fifo_evicted"])
-        state.episodes_received = int(c["episodes_received"])
-        state.transitions_received = int(c["transitions_received"])
-        state.batches_served = int(c["batches_served"])
-        state.sample_requests = int(c["sample_requests"])
-        state.last_episode_version = int(c["last_episode_version"])
-        state.rejections.update(c["rejections"])
-        state.limiter.inserts = int(header["limiter"]["inserts"])
-        state.limiter.samples = int(header["limiter"]["samples"])
-        state.last_seq = {(int(a), int(inc)): int(seq) for a, inc, seq in header["last_seq"]}
+        if header["v"] == 1:
+            saved, parts = _state_from_v1(header), {}
+            header["transitions"] = header["counters"]["transitions_received"]
+        else:
+            saved, parts = header["state"], header["parts"]
+        admission = (saved.get("heap") or {}).get("admission")
+        if admission is not None and state.heap is not None and admission != state.heap.admission:
+            raise SnapshotError(f"{path} ranks D_E by {admission}, this run by {state.heap.admission} "
+                                f"(--expert-admission)")
+        state.restore(_put_episodes_back(saved, episodes))
     except (IndexError, KeyError, TypeError, ValueError) as e:
         raise SnapshotError(f"{path} has an inconsistent index ({type(e).__name__}: {e})") from None
-    return Snapshot(header, episodes)
+    return Snapshot(header, episodes, parts=parts)
 
 
 class BackgroundWriter:
@@ -188,6 +218,12 @@ class BackgroundWriter:
         self.last_written_at: float | None = None
         self.last_seconds = 0.0
         self.last_error = ""
+
+    def state(self) -> dict[str, int]:
+        return {"written": self.written, "skipped": self.skipped, "failed": self.failed}
+
+    def restore(self, state: dict[str, int]) -> None:
+        self.written, self.skipped, self.failed = int(state["written"]), int(state["skipped"]), int(state["failed"])
 
     def busy(self) -> bool:
         return self._thread is not None and self._thread.is_alive()

@@ -61,7 +61,7 @@ def run_single_process(cfg: Config) -> int:
     stop = StopFlag().install_signal_handlers()
     spec = EnvSpec.of(cfg.env)
     try:
-        replay, _ = open_replay(cfg, spec)
+        replay, snap = open_replay(cfg, spec)
     except snapshot.SnapshotError as e:
         print(f"silcr train: error: cannot resume: {e}", file=sys.stderr)
         return 1
@@ -76,6 +76,8 @@ def run_single_process(cfg: Config) -> int:
               for i in range(cfg.actors)]
     stream = InProcessBatchStream(replay, cfg.batches_per_request, cfg.batch_size, stop)
     writer = snapshot.BackgroundWriter(checkpoint_path(cfg))
+    if snap is not None and "writer" in snap.parts:
+        writer.restore(snap.parts["writer"])
     interval = cfg.buffer_checkpoint_interval
     next_checkpoint = time.monotonic() + interval if interval > 0 else float("inf")
     polled = [0] * len(actors)
@@ -99,7 +101,7 @@ def run_single_process(cfg: Config) -> int:
                 break
             now = time.monotonic()
             if now >= next_checkpoint:
-                writer.submit(snapshot.take(replay))
+                writer.submit(snapshot.take(replay, writer=writer))
                 next_checkpoint = now + interval
             if now >= next_show:
                 stats = learner.stats()
