@@ -3,7 +3,8 @@
 The paper's setting (§III-A): the environment gives 0 at every step and the
 episode's summed reward at its last step. `EpisodicReward` turns any gymnasium
 env into that; the episodic versions of the paper's five tasks are registered as
-`silcr/<Task>-v5` (for example `gymnasium.make("silcr/Hopper-v5")`).
+`silcr/<Task>-v5` (for example `gymnasium.make("silcr/Hopper-v5")`). The project's
+own test task, `silcr/PointGoal-v0` (common/point_goal.py), pays only at the end anyway.
 """
 
 from __future__ import annotations
@@ -102,11 +103,18 @@ class EnvSpec:
         return self.action_low + (np.asarray(squashed) + 1.0) * 0.5 * (self.action_high - self.action_low)
 
 
-def _register_episodic_tasks() -> None:
+POINT_GOAL_ID = "silcr/PointGoal-v0"
+
+
+def _register_tasks() -> None:
     for task in PAPER_TASKS:
         eid = f"silcr/{task}"
         if eid not in gym.registry:
             gym.register(id=eid, entry_point=make_env, kwargs={"env_id": task, "reward": "episodic"})
+    if POINT_GOAL_ID not in gym.registry:
+        from silcr.common.point_goal import EPISODE_STEPS
+
+        gym.register(id=POINT_GOAL_ID, entry_point="silcr.common.point_goal:PointGoalEnv", max_episode_steps=EPISODE_STEPS)
 
 
-_register_episodic_tasks()
+_register_tasks()
