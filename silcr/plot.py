@@ -1,9 +1,15 @@
 """Learning curves and summary tables from run directories (`silcr plot`).
 
 A run directory holds `config.toml` (env, algo, seed) and `progress.csv`
-(`env_steps`, `eval_return`). Runs of the same (env, algo) are seeds of one
-curve: their evaluations are interpolated onto a common grid of environment
-steps (up to the shortest run) and shown as the mean with a +-1 std band.
+(`env_steps`, `eval_return`). Runs of the same (env, label) are seeds of one
+curve: their values are interpolated onto a common grid of environment steps
+(up to the shortest run) and shown as the mean with a +-1 std band.
+
+A label is the algorithm (with SAC's reward and a non-default M), plus every
+setting that differs between the runs plotted together (`tau=0.005`,
+`expert_admission=recent`, ...), so that runs of different settings are never
+averaged into one curve. `--metric` plots another progress.csv column
+(`expert_min_return`: D_E's lowest return; `q_max`: the critics' largest Q).
 """
 
 from __future__ import annotations
@@ -12,7 +18,7 @@ import argparse
 import csv
 import tomllib
 from collections import defaultdict
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -22,34 +28,60 @@ import numpy as np
 class RunCurve:
     path: Path
     env: str
-    algo: str
+    algo: str  # the curve's label
     seed: int
     steps: np.ndarray
-    returns: np.ndarray
+    returns: np.ndarray  # the plotted metric (the evaluation return unless --metric says otherwise)
+    config: dict = field(default_factory=dict)
+    q_watched: bool = False  # progress.csv has the divergence counter (silcr 0.2 and later)
+    first_past_q_bound: float | None = None  # env steps of the first row where q_bound_exceeded > 0
 
 
-def load_run(path: Path) -> RunCurve:
+#: Config keys that never tell curves apart: they name or place a run, say how it was
+#: executed, or are already in the label.
+NOT_A_SETTING = {"run", "runs_dir", "seed", "resume", "connect", "listen", "zenoh_mode", "zenoh_config", "zenoh_listen",
+                 "device", "torch_threads", "stats_interval", "checkpoint_interval", "buffer_checkpoint_interval",
+                 "max_restarts", "actor_id", "actors", "envs_per_actor", "single_process", "weights_poll_steps",
+                 "weights_wait", "batches_per_request", "requests_in_flight", "max_episode_bytes", "no_throttle",
+                 "spi_tolerance", "env", "algo", "reward", "expert_capacity", "demos", "eval_interval", "eval_episodes",
+                 "total_steps"}
+
+
+def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     try:
         cfg = tomllib.loads((path / "config.toml").read_text())
         with open(path / "progress.csv", newline="") as f:
-            rows = [r for r in csv.DictReader(f) if r.get("eval_return") not in (None, "")]
+            all_rows = list(csv.DictReader(f))
     except FileNotFoundError as e:
         raise ValueError(f"{path} is not a run directory (missing {Path(e.filename).name})") from None
     except (tomllib.TOMLDecodeError, csv.Error, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: unreadable run files ({e})") from None
+    rows = [r for r in all_rows if r.get(metric) not in (None, "")]
     if not rows:
-        raise ValueError(f"{path}: progress.csv has no evaluations yet")
+        raise ValueError(f"{path}: progress.csv has no values of {metric} yet")
     try:
         steps = np.array([float(r["env_steps"]) for r in rows])
-        returns = np.array([float(r["eval_return"]) for r in rows])
+        values = np.array([float(r[metric]) for r in rows])
     except (KeyError, ValueError) as e:
-        raise ValueError(f"{path}: progress.csv lacks env_steps/eval_return numbers ({e})") from None
+        raise ValueError(f"{path}: progress.csv lacks env_steps/{metric} numbers ({e})") from None
     algo = cfg.get("algo", "?")
     # SILCR and SQIL ignore the env's reward; SAC's label says which one it had.
     label = f"{algo}-{cfg.get('reward', '')}" if algo == "sac" else algo
     if algo == "silcr" and cfg.get("expert_capacity", 50_000) != 50_000:
         label += f" (M={cfg['expert_capacity']:.0e})".replace("e+0", "e")  # the M ablation: one curve per M
-    return RunCurve(path, cfg.get("env", "?"), label, int(cfg.get("seed", 0)), steps, returns)
+    past = [float(r["env_steps"]) for r in all_rows if (r.get("q_bound_exceeded") or "0") not in ("", "0")]
+    return RunCurve(path, cfg.get("env", "?"), label, int(cfg.get("seed", 0)), steps, values, cfg,
+                    "q_bound_exceeded" in all_rows[0], past[0] if past else None)
+
+
+def distinguish(runs: list[RunCurve]) -> list[RunCurve]:
+    """Add to each label the settings that differ between `runs` (so different settings never share a curve)."""
+    keys = sorted({k for r in runs for k in r.config} - NOT_A_SETTING)
+    differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs}) > 1]
+    for r in runs:
+        extra = " ".join(f"{k}={r.config.get(k)}" for k in differing)
+        r.algo = f"{r.algo} {extra}" if extra else r.algo
+    return runs
 
 
 def group(runs: list[RunCurve]) -> dict[str, dict[str, list[RunCurve]]]:
@@ -66,7 +98,8 @@ def mean_curve(runs: list[RunCurve], points: int = 100) -> tuple[np.ndarray, np.
     return grid, ys.mean(0), ys.std(0)
 
 
-def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: str = ""):
+def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: str = "", ylabel: str = "evaluation return (dense)",
+         logy: bool = False):
     import matplotlib
 
     matplotlib.use("Agg")
@@ -87,7 +120,9 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
             ax.axhline(expert, linestyle="--", color="black", label="expert")
         ax.set_title(env)
         ax.set_xlabel("environment steps")
-        ax.set_ylabel("evaluation return (dense)")
+        ax.set_ylabel(ylabel)
+        if logy:
+            ax.set_yscale("symlog")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")
     for ax in list(axes.flat)[len(envs):]:
@@ -102,9 +137,12 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
     return fig
 
 
-def summary_markdown(runs: list[RunCurve]) -> str:
-    """Final and best evaluation return per (env, algo): mean +- std over seeds."""
-    lines = ["| env | algo | seeds | env steps | final return | best return |", "|---|---|---|---|---|---|"]
+def summary_markdown(runs: list[RunCurve], metric: str = "return") -> str:
+    """Final and best value per (env, label): mean +- std over seeds; and whether the critics passed q_bound."""
+    watched = any(r.q_watched for r in runs)
+    head = f"| env | algo | seeds | env steps | final {metric} | best {metric} |"
+    lines = [head + (" critics past q_bound (first at env steps) |" if watched else ""),
+             "|---|---|---|---|---|---|" + ("---|" if watched else "")]
     groups = group(runs)
     for env in sorted(groups):
         for algo in sorted(groups[env]):
@@ -112,24 +150,27 @@ def summary_markdown(runs: list[RunCurve]) -> str:
             final = np.array([r.returns[-1] for r in seeds])
             best = np.array([r.returns.max() for r in seeds])
             steps = int(min(r.steps[-1] for r in seeds))
-            lines.append(
-                f"| {env} | {algo} | {len(seeds)} | {steps:,} | {final.mean():.1f} ± {final.std():.1f} | "
-                f"{best.mean():.1f} ± {best.std():.1f} |"
-            )
+            line = (f"| {env} | {algo} | {len(seeds)} | {steps:,} | {final.mean():.1f} ± {final.std():.1f} | "
+                    f"{best.mean():.1f} ± {best.std():.1f} |")
+            if watched:
+                firsts = sorted(int(r.first_past_q_bound) for r in seeds if r.first_past_q_bound is not None)
+                line += f" {len(firsts)}/{len(seeds)}" + (f" ({', '.join(f'{f:,}' for f in firsts)})" if firsts else "") + " |"
+            lines.append(line)
     return "\n".join(lines) + "\n"
 
 
 def plot_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     """`silcr plot RUN_DIR... -o fig.png [--table t.md]`."""
     try:
-        runs = [load_run(Path(r)) for r in args.runs]
+        runs = distinguish([load_run(Path(r), args.metric) for r in args.runs])
     except ValueError as e:
         parser.error(str(e))
     out = Path(args.out)
     if out.suffix not in (".png", ".svg", ".pdf"):
         parser.error(f"-o {args.out}: use a .png, .svg or .pdf file name")
-    plot(runs, out, args.expert, args.title)
-    table = summary_markdown(runs)
+    metric = "return" if args.metric == "eval_return" else args.metric
+    plot(runs, out, args.expert, args.title, "evaluation return (dense)" if metric == "return" else args.metric, args.logy)
+    table = summary_markdown(runs, metric)
     print(table, end="")
     if args.table:
         Path(args.table).write_text(table)

@@ -122,3 +122,29 @@ def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
         (d / "progress.csv").write_text("time,env_steps,updates,policy_version,eval_return\n0,0,0,0,1\n")
         labels.append(load_run(d).algo)
     assert labels == ["silcr", "silcr (M=1e4)", "sac-dense", "sqil"]
+
+
+def test_plot_keeps_runs_of_different_settings_apart_and_plots_other_columns(tmp_path):
+    from silcr.common.config import Config
+    from silcr.plot import distinguish
+
+    dirs = []
+    for i, (tau, admission, seed) in enumerate([(0.05, "return", 0), (0.05, "return", 1), (0.005, "return", 0),
+                                               (0.005, "recent", 0)]):
+        d = tmp_path / f"r{i}"
+        d.mkdir()
+        Config(run=d.name, env="Hopper-v5", tau=tau, expert_admission=admission, seed=seed).save(d / "config.toml")
+        (d / "progress.csv").write_text("env_steps,eval_return,expert_min_return,q_bound_exceeded\n"
+                                        f"0,1,,0\n1000,{2 + i},{5 + i},{i}\n2000,{3 + i},{6 + i},{2 * i}\n")
+        dirs.append(d)
+    runs = distinguish([load_run(d) for d in dirs])
+    assert [r.algo for r in runs] == ["silcr expert_admission=return tau=0.05"] * 2 + [
+        "silcr expert_admission=return tau=0.005", "silcr expert_admission=recent tau=0.005"]
+    table = summary_markdown(runs)
+    assert "| silcr expert_admission=return tau=0.05 | 2 |" in table and "1/2 (1,000)" in table
+    assert "| silcr expert_admission=recent tau=0.005 | 1 |" in table and "1/1 (1,000)" in table
+    minimum = load_run(dirs[3], "expert_min_return")  # rows without a value yet are left out
+    assert list(minimum.steps) == [1000, 2000] and list(minimum.returns) == [8, 9]
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "--metric", "q_max", "-o",
+                        str(tmp_path / "q.png")], capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert r.returncode == 2 and "no values of q_max" in r.stderr and "Traceback" not in r.stderr
