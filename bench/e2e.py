@@ -1,7 +1,9 @@
-"""End-to-end benchmark: a real `silcr train` run, measured from its own stats topics."""
+"""End-to-end benchmark: a real `silcr train` run, measured from its own stats topics, and the same
+budget with `--single-process` (one process, no Zenoh), measured from its progress.csv."""
 
 from __future__ import annotations
 
+import csv
 import subprocess
 import sys
 import tempfile
@@ -58,8 +60,22 @@ def run(out_dir: Path, quick: bool = False, env_id: str = "Hopper-v5", actors: i
         "learner_duty_cycle": last.get("duty_cycle"), "batch_wait_ms_p50": last.get("batch_wait_ms_p50"),
         "batch_wait_ms_p99": last.get("batch_wait_ms_p99"), "policy_lag_mean": last.get("policy_lag_mean"),
         "weights_latency_ms_p50": sum(latencies) / len(latencies) if latencies else None,
+        "single_process_updates_per_s": _single_process_rate(env_id, actors, warmup, updates),
     }
     print_table(f"end to end: silcr train on {env_id}, {actors} actors, 800-400",
                 ["metric", "value"], [[k, v] for k, v in result.items()])
     write_json(out_dir, "e2e", {"results": result})
     return result
+
+
+def _single_process_rate(env_id: str, actors: int, warmup: int, updates: int) -> float:
+    """Updates per second of the same budget in one process (both cores for torch), warm-up included as above."""
+    runs_dir = Path(tempfile.mkdtemp(prefix="silcr-bench-single-"))
+    subprocess.run(
+        [sys.executable, "-m", "silcr.cli", "train", "--single-process", "--run", "single", "--runs-dir", str(runs_dir),
+         "--env", env_id, "--actors", str(actors), "--learning-starts", str(warmup), "--total-steps",
+         str(warmup + updates), "--eval-episodes", "1", "--eval-interval", str(10 * (warmup + updates))],
+        stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, check=True, timeout=3600,
+    )
+    last = list(csv.DictReader(open(runs_dir / "single" / "progress.csv")))[-1]
+    return float(last["updates_per_s"])
