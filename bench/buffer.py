@@ -19,6 +19,8 @@ import zenoh
 from silcr.buffer_service.batches import compose_batches
 from silcr.buffer_service.service import ReplayState
 from silcr.common import protocol as P
+from silcr.common.clients import ZenohBatchStream
+from silcr.common.lifecycle import StopFlag
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.learner.sac import Sac, SacHyper
@@ -139,18 +141,14 @@ def _over_zenoh(env_id: str, payloads: list[bytes], quick: bool) -> tuple[float,
                 pub.put(p)
             wait_until(lambda: stats.get(keys.stats_buffer).get("episodes_received", 0) >= len(payloads), 120, "episodes")
             inserts = 1000 * len(payloads) / (time.perf_counter() - t0)
-            querier = s.declare_querier(keys.sample, timeout=10, consolidation=zenoh.ConsolidationMode.NONE)
-            req = P.SampleRequest(4, 128).encode()
+            # The learner's own client: 4 batches per query, 4 queries in flight.
+            stream = ZenohBatchStream(s, keys, 4, 128, 4, StopFlag())
+            stream.wait_for_buffer()
             n = 50 if quick else 250
-            in_flight = [querier.get(payload=req) for _ in range(4)]
             t0 = time.perf_counter()
-            got = 0
-            for i in range(n):
-                reply = next(iter(in_flight.pop(0)))
-                got += P.BatchReply.decode(reply.ok.payload.to_bytes()).meta["batches"]
-                if i + 4 < n:
-                    in_flight.append(querier.get(payload=req))
-            batches = got / (time.perf_counter() - t0)
+            for _ in range(n):
+                stream.get()
+            batches = stream.batches / (time.perf_counter() - t0)
         return inserts, batches
     finally:
         comp.stop()
