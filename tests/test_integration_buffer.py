@@ -13,6 +13,11 @@ from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait
 
 RUN = "itest-buffer"
 KEYS = P.Keys(RUN)
+ENV, OBS, ACT = "silcr/PointGoal-v0", 3, 2
+
+
+def episode(length: int, **kw) -> P.Episode:
+    return make_episode(length, obs_dim=kw.pop("obs_dim", OBS), act_dim=ACT, **kw)
 REQUIRED_STATS = {
     "online_transitions", "online_capacity", "online_evicted", "online_evicted_for_rows", "expert_transitions",
     "expert_capacity", "expert_episodes",
@@ -28,8 +33,9 @@ def system(tmp_path_factory):
     ep = f"tcp/127.0.0.1:{port}"
     procs.start("router", "router", "--listen", ep)
     procs.start(
-        "buffer", "buffer", "--run", RUN, "--env", "InvertedPendulum-v5", "--connect", ep,
-        "--learning-starts", "50", "--expert-capacity", "40", "--spi-tolerance", "1000", "--stats-interval", "0.2",
+        # PointGoal's episodes last 50 steps: M may be as small as that (5 of the test's 10-step episodes)
+        "buffer", "buffer", "--run", RUN, "--env", ENV, "--connect", ep,
+        "--learning-starts", "50", "--expert-capacity", "50", "--spi-tolerance", "1000", "--stats-interval", "0.2",
     )
     session = client_when_up(port)
     stats = LatestJson(session, KEYS.stats_all)
@@ -58,7 +64,7 @@ def test_stats_are_json_with_the_contract_fields(system):
     s = stats.get(KEYS.stats_buffer)
     assert REQUIRED_STATS <= s.keys()
     assert stats.encodings[KEYS.stats_buffer].startswith("application/json")
-    assert s["online_capacity"] == 1_000_000 and s["expert_capacity"] == 40
+    assert s["online_capacity"] == 1_000_000 and s["expert_capacity"] == 50
 
 
 def test_not_ready_during_warmup(system):
@@ -70,8 +76,8 @@ def test_not_ready_during_warmup(system):
 
 def test_episodes_arrive_bad_ones_are_rejected_and_batches_are_mixed(system):
     procs, session, stats = system
-    good = [P.EpisodeCodec.encode(make_episode(10, ret=float(i), seq=i, start=1000 * i)) for i in range(10)]
-    wrong_dim = P.EpisodeCodec.encode(make_episode(10, obs_dim=7))
+    good = [P.EpisodeCodec.encode(episode(10, ret=float(i), seq=i, start=1000 * i)) for i in range(10)]
+    wrong_dim = P.EpisodeCodec.encode(episode(10, obs_dim=7))
     nan = msgpack.unpackb(good[0], raw=False)
     arr = np.frombuffer(nan["obs"][2], np.float32).copy()
     arr[3] = np.nan
@@ -84,8 +90,8 @@ def test_episodes_arrive_bad_ones_are_rejected_and_batches_are_mixed(system):
     assert s["episodes_received"] == 10 and s["transitions_received"] == 100
     assert s["episodes_rejected"] == 3
     assert s["rejections"] == {"not_msgpack": 1, "obs_dim": 1, "non_finite": 1}
-    # D_E holds the best whole episodes within M = 40: returns 6..9
-    assert s["expert_episodes"] == 4 and s["expert_min_return"] == 6.0 and s["expert_max_return"] == 9.0
+    # D_E holds the best whole episodes within M = 50: returns 5..9
+    assert s["expert_episodes"] == 5 and s["expert_min_return"] == 5.0 and s["expert_max_return"] == 9.0
     assert procs.procs["buffer"].poll() is None
 
     r = _query(session, P.SampleRequest(2, 16).encode())
@@ -94,8 +100,8 @@ def test_episodes_arrive_bad_ones_are_rejected_and_batches_are_mixed(system):
     rewards = reply.arrays["rewards"].reshape(2, 16)
     np.testing.assert_array_equal(rewards[:, :8], 0.0)
     np.testing.assert_array_equal(rewards[:, 8:], 1.0)
-    expert_obs = reply.arrays["obs"].reshape(2, 16, 4)[:, 8:, 0]
-    assert (expert_obs >= 6000).all()  # only the top episodes are in D_E
+    expert_obs = reply.arrays["obs"].reshape(2, 16, OBS)[:, 8:, 0]
+    assert (expert_obs >= 5000).all()  # only the top episodes are in D_E
     np.testing.assert_array_equal(reply.arrays["next_obs"][:, 0], reply.arrays["obs"][:, 0] + 1)
 
 
