@@ -51,7 +51,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--title", default="", help="figure title")
             p.add_argument("--metric", default="eval_return", help="progress.csv column to plot against env steps "
                            "(default: eval_return; e.g. expert_min_return, q_max, alpha)")
-            p.add_argument("--logy", action="store_true", help="symmetric-log y axis (for q_max across diverging runs)")
+            p.add_argument("--logy", action="store_true", help="log y axis, with the median and the range over seeds instead of mean +- std "
+                           "(for q_max across diverging runs)")
             continue
         if role == "eval":
             p.add_argument("checkpoint", help="a learner checkpoint (runs/<run>/checkpoints/learner.pt)")

@@ -91,10 +91,14 @@ def group(runs: list[RunCurve]) -> dict[str, dict[str, list[RunCurve]]]:
     return out
 
 
-def mean_curve(runs: list[RunCurve], points: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _on_grid(runs: list[RunCurve], points: int = 100) -> tuple[np.ndarray, np.ndarray]:
     end = min(r.steps[-1] for r in runs)
     grid = np.linspace(0.0, end, points) if end > 0 else np.zeros(1)
-    ys = np.stack([np.interp(grid, r.steps, r.returns) for r in runs])
+    return grid, np.stack([np.interp(grid, r.steps, r.returns) for r in runs])
+
+
+def mean_curve(runs: list[RunCurve], points: int = 100) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    grid, ys = _on_grid(runs, points)
     return grid, ys.mean(0), ys.std(0)
 
 
@@ -113,16 +117,23 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
     for ax, env in zip(axes.flat, envs):
         for algo in sorted(groups[env]):
             seeds = groups[env][algo]
-            x, m, s = mean_curve(seeds)
-            (line,) = ax.plot(x, m, label=f"{algo} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})")
-            ax.fill_between(x, m - s, m + s, color=line.get_color(), alpha=0.2)
+            label = f"{algo} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})"
+            if logy:  # values over orders of magnitude: the median, and the range over seeds
+                x, ys = _on_grid(seeds)
+                (line,) = ax.plot(x, np.median(ys, 0), label=label)
+                ax.fill_between(x, ys.min(0), ys.max(0), color=line.get_color(), alpha=0.2)
+            else:
+                x, m, sd = mean_curve(seeds)
+                (line,) = ax.plot(x, m, label=label)
+                ax.fill_between(x, m - sd, m + sd, color=line.get_color(), alpha=0.2)
         if expert is not None:
             ax.axhline(expert, linestyle="--", color="black", label="expert")
         ax.set_title(env)
         ax.set_xlabel("environment steps")
         ax.set_ylabel(ylabel)
         if logy:
-            ax.set_yscale("symlog")
+            positive = all((r.returns > 0).all() for algo in groups[env].values() for r in algo)
+            ax.set_yscale("log" if positive else "symlog")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")
     for ax in list(axes.flat)[len(envs):]:
