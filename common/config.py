@@ -79,7 +79,8 @@ class Config:
     hidden: list[int] = _opt([800, 400], {"train", "learner", "actor"}, "hidden layer sizes of actor and critics (Table I: 800 400)", nargs="+")
     lr: float = _opt(3e-4, {"train", "learner"}, "Adam learning rate for actor, critics and alpha")
     gamma: float = _opt(0.99, {"train", "learner"}, "discount factor")
-    tau: float = _opt(0.05, {"train", "learner"}, "target-critic soft update rate (official: 0.05)")
+    tau: float = _opt(0.005, {"train", "learner"}, "target-critic soft update rate (Table I and the official code: 0.05, "
+                      "with which the critics diverged on Hopper and Walker2d; docs/algorithm.md)")
     grad_clip: float = _opt(40.0, {"train", "learner"}, "gradient-norm clip for actor and each critic (0: off)")
     init_alpha: float = _opt(1.0, {"train", "learner"}, "initial entropy temperature")
     time_limit_terminal: bool = _opt(False, {"train", "learner"}, "treat time-limit truncation as terminal, as the official code does")

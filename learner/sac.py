@@ -18,8 +18,9 @@ tanh log-probability correction, computed by default in its exact stable form
 (see `Actor.sample`; `tanh_log_prob="official"` gives the official one): mean-squared
 critic loss without the 1/2, gradient-norm clip 40 per critic and for the actor,
 the actor step against the just-updated critics, the alpha step using that
-actor step's log-probabilities, soft target update with tau = 0.05 after every
-update. Differs on purpose: the bootstrap is masked only on true termination
+actor step's log-probabilities, soft target update after every update (Table I's
+tau = 0.05; silcr's default is 0.005, because 0.05 made the critics diverge:
+docs/algorithm.md, "Divergence"). Differs on purpose: the bootstrap is masked only on true termination
 (`terminated`), unless `time_limit_terminal` asks for the official behaviour.
 """
 
@@ -124,7 +125,7 @@ class TwinCritic(nn.Module):
 @dataclass
 class SacHyper:
     gamma: float = 0.99
-    tau: float = 0.05
+    tau: float = 0.005  # Table I: 0.05 (docs/algorithm.md, "Divergence")
     lr: float = 3e-4
     grad_clip: float = 40.0
     init_alpha: float = 1.0

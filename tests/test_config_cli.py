@@ -10,6 +10,7 @@ import pytest
 
 from silcr.cli import build_parser
 from silcr.common.config import Config, ConfigError, resolve
+from tests.helpers import REPO
 
 
 def _resolve(argv: list[str], role: str = "train") -> Config:
@@ -17,9 +18,11 @@ def _resolve(argv: list[str], role: str = "train") -> Config:
     return resolve(parser.parse_args([role, *argv]), role)
 
 
-def test_defaults_are_table_one():
+def test_defaults_are_table_one_except_tau():
     cfg = _resolve([])
-    assert cfg.hidden == [800, 400] and cfg.lr == 3e-4 and cfg.gamma == 0.99 and cfg.tau == 0.05
+    assert cfg.hidden == [800, 400] and cfg.lr == 3e-4 and cfg.gamma == 0.99
+    assert cfg.tau == 0.005  # Table I's 0.05 diverged (docs/algorithm.md); configs/paper.toml keeps it
+    assert _resolve(["--config", str(REPO / "configs" / "paper.toml")]).tau == 0.05
     assert cfg.batch_size == 128 and cfg.online_capacity == 1_000_000 and cfg.expert_capacity == 50_000
     assert cfg.learning_starts == 10_240 and cfg.samples_per_insert == 1.0
     assert cfg.run.startswith("Hopper-v5-silcr-")
@@ -98,8 +101,6 @@ def test_every_subcommand_has_help():
 
 @pytest.mark.parametrize("name", ["paper.toml", "smoke.toml"])
 def test_shipped_configs_load(name):
-    from tests.helpers import REPO
-
     cfg = _resolve(["--config", str(REPO / "configs" / name)])
     assert cfg.algo == "silcr"
 
