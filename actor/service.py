@@ -121,7 +121,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         last_poll = 0
         next_stats = time.monotonic()
         while not stop.is_set():
-            paused = writer.paused
+            paused = writer.paused()
             if paused:
                 t0 = time.monotonic()
                 stop.wait(0.01)

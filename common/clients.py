@@ -1,12 +1,12 @@
 """Protocol clients: one object per direction of traffic, each over Zenoh or in-process.
 
-    actor   --EpisodeWriter-->   buffer    write(episode); `paused` while the rate limiter says so
+    actor   --EpisodeWriter-->   buffer    write(episode); paused() while the rate limiter says so
     learner <--BatchStream---    buffer    iterate over mixed batches
     actor   <--WeightsClient--   learner   update(); .policy
     learner --WeightsServer-->   actors    publish(weights)
     any     --StatsPublisher-->  monitors  put(stats dict), JSON on silcr/<run>/stats/...
     any     --Shutdown-------->  everyone  announce(reason); `stop_on_shutdown` listens
-    buffer  --Throttle-------->  actors    send(paused); read by `ZenohEpisodeWriter.paused`
+    buffer  --Throttle-------->  actors    send(paused); read by `ZenohEpisodeWriter.paused()`
 
 The roles (`silcr.actor.service`, `silcr.learner.service`) are loops over these
 objects and never touch keys, codecs or Zenoh themselves. The Zenoh clients are
@@ -53,14 +53,13 @@ class Replay(Protocol):
 
 
 class EpisodeWriter:
-    """Writes finished episodes to the buffer service; `paused` says whether actors should wait."""
+    """Writes finished episodes to the buffer service; `paused()` says whether actors should wait."""
 
     def __init__(self) -> None:
         self.written = 0
         self.unwritten = 0  # episodes given up because the process was stopping
         self.waited_for_buffer_s = 0.0
 
-    @property
     def paused(self) -> bool:
         return False
 
@@ -86,8 +85,8 @@ class ZenohEpisodeWriter(EpisodeWriter):
         self._paused = False
         self.malformed_throttle = 0
 
-    @property
     def paused(self) -> bool:
+        """The latest throttle message's word (read from the topic now)."""
         msg = self._throttle.try_recv()
         if msg is not None:
             try:

@@ -265,7 +265,7 @@ class Learner:
     def record_scalars(self, stats: dict[str, Any]) -> None:
         """The training statistics as TensorBoard scalars at the current env step."""
         if self.updates:
-            keys = [*as_floats(self._last_stats), "q_bound_exceeded", "updates_per_s"]
+            keys = [*self._last_stats, "q_bound_exceeded", "updates_per_s"]
             self.progress.scalars({f"train/{k}": stats[k] for k in keys if stats.get(k) is not None}, self.env_steps)
 
 
