@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import ast
 import os
+import shutil
 import site
 import subprocess
 import sys
@@ -45,8 +46,12 @@ def test_common_imports_no_component(module):
 def installed(tmp_path_factory):
     """A fresh venv with silcr installed from a wheel of this checkout (its dependencies borrowed from this venv)."""
     tmp = tmp_path_factory.mktemp("install")
+    # Built from a copy: setuptools leaves build/ beside the sources, and a stale one would hide a missing file.
+    src = tmp / "src"
+    shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(".git", ".venv", "build", "runs", "results", "*.egg-info",
+                                                            "__pycache__", ".pytest_cache", ".hypothesis"))
     subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
-                    str(tmp / "wheel"), str(REPO)], check=True, timeout=300, capture_output=True)
+                    str(tmp / "wheel"), str(src)], check=True, timeout=300, capture_output=True)
     wheel = next((tmp / "wheel").glob("silcr-*.whl"))
     env_dir = tmp / "venv"
     venv.create(env_dir, with_pip=True)
