@@ -24,7 +24,7 @@ import zenoh
 from silcr.common import protocol as P
 from silcr.common.clients import StatsPublisher, Throttle, stop_on_shutdown
 from silcr.common.config import Config
-from silcr.common.demos import load_demos
+from silcr.common.demos import is_demonstration, load_demos
 from silcr.common.envs import EnvSpec
 from silcr.common.lifecycle import StopFlag
 from silcr.common.zenoh_session import open_session, session_config
@@ -73,6 +73,25 @@ class ReplayState:
         # Last sequence number per (actor id, incarnation): an episode is never stored twice.
         self.last_seq: dict[tuple[int, int], int] = {}
         self.started = time.time()
+
+    def warm_start(self, demos: list[P.Episode]) -> None:
+        """`--expert-init`: offer demonstrations to D_E, best first, before any episode of the agent's own.
+
+        From then on they are ranked and evicted like any episode: better own
+        episodes push them out, worse ones do not (`expert_init_transitions` counts what is left).
+        """
+        assert self.heap is not None and self.cfg.algo == "silcr"
+        for d in sorted(demos, key=lambda e: e.episode_return, reverse=True):
+            self.heap.offer(d)
+        log.info("D_E starts with %d of %d demonstration episodes (%d transitions, returns %.1f to %.1f)",
+                 self.heap.num_episodes, len(demos), len(self.heap), self.heap.min_return or 0.0,
+                 self.heap.max_return or 0.0)
+
+    def expert_init_transitions(self) -> int:
+        """Demonstration transitions still in D_E (SILCR with --expert-init)."""
+        if self.heap is None or self.cfg.algo != "silcr":
+            return 0
+        return sum(e.length for e in self.heap.episodes() if is_demonstration(e))
 
     # -- episodes ---------------------------------------------------------------
     def ingest(self, payload: bytes) -> P.Episode:
@@ -202,6 +221,7 @@ class ReplayState:
             "expert_admitted": heap.admitted if heap is not None else 0,
             "expert_rejected": heap.rejected if heap is not None else 0,
             "expert_evicted": heap.evicted if heap is not None else 0,
+            "expert_init_transitions": self.expert_init_transitions(),
             "episodes_received": self.episodes_received,
             "transitions_received": self.transitions_received,
             "episodes_rejected": sum(self.rejections.values()),
@@ -299,10 +319,11 @@ def open_replay(cfg: Config, spec: EnvSpec) -> tuple[ReplayState, snapshot.Snaps
     """
     state = ReplayState(cfg, spec)
     path = checkpoint_path(cfg)
-    if not cfg.resume:
-        return state, None
-    if not path.exists():
-        log.info("--resume: no buffer checkpoint at %s yet; starting empty", path)
+    if not (cfg.resume and path.exists()):
+        if cfg.resume:
+            log.info("--resume: no buffer checkpoint at %s yet; starting empty", path)
+        if cfg.expert_init:  # a restored D_E already holds what is left of them
+            state.warm_start(load_demos(Path(cfg.expert_init), spec))
         return state, None
     t0 = time.monotonic()
     snap = snapshot.restore(path, state)

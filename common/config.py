@@ -73,6 +73,8 @@ class Config:
     spi_tolerance: float = _opt(2_000.0, SERVICE, "how many updates the learner or actors may run ahead of the ratio")
     no_throttle: bool = _opt(False, {"train", "buffer"}, "let actors run free instead of pausing them when they are ahead")
     demos: str = _opt("", {"train", "buffer"}, "demonstrations file (`silcr demos`) that fills D_E for --algo sqil")
+    expert_init: str = _opt("", {"train", "buffer"}, "demonstrations file (`silcr demos`) that D_E starts with for --algo silcr; "
+                            "they are ranked and evicted like the agent's own episodes")
     max_episode_bytes: int = _opt(DEFAULT_MAX_EPISODE_BYTES, {"train", "buffer"}, "largest episode message accepted")
     buffer_checkpoint_interval: float = _opt(300.0, {"train", "buffer"}, "seconds between buffer checkpoints (D_O, D_E, counters) in <run dir>/checkpoints/buffer.ckpt; 0: only at shutdown")
     # --- learner ---------------------------------------------------------------
@@ -297,6 +299,11 @@ def validate(cfg: Config, role: str) -> None:
             raise ConfigError("--demos", f"only --algo sqil uses demonstrations (got --algo {cfg.algo})")
         if cfg.demos and not Path(cfg.demos).is_file():
             raise ConfigError("--demos", f"no such file: {cfg.demos}")
+        if cfg.expert_init and cfg.algo != "silcr":
+            raise ConfigError("--expert-init", f"only --algo silcr ranks demonstrations with its own episodes (got --algo "
+                                               f"{cfg.algo}; SQIL takes them with --demos)")
+        if cfg.expert_init and not Path(cfg.expert_init).is_file():
+            raise ConfigError("--expert-init", f"no such file: {cfg.expert_init}")
         if cfg.expert_admission != "return" and cfg.algo != "silcr":
             raise ConfigError("--expert-admission", f"only --algo silcr fills D_E from its own episodes (got --algo {cfg.algo})")
     if cfg.env in EPISODIC_IDS and cfg.algo == "sac" and cfg.reward == "dense":

@@ -1,4 +1,5 @@
-"""Demonstration files for the SQIL baseline (`silcr demos` writes them, the buffer loads them).
+"""Demonstration files (`silcr demos` writes them): SQIL's fixed D_E, or a warm start of SILCR's
+(`--expert-init`), where they compete with the agent's own episodes by return.
 
 Format: one NumPy `.npz` archive (no pickled objects), version 1:
 
@@ -31,6 +32,14 @@ from silcr.common.protocol import Episode
 
 DEMOS_FORMAT = "silcr-demos"
 DEMOS_VERSION = 1
+#: The sender every loaded demonstration carries (actor 0 of this incarnation, which no
+#: process draws: incarnations are random 56-bit ids), so that D_E can count them and a
+#: buffer checkpoint keeps them as what they are.
+DEMO_INCARNATION = 2**63 - 1
+
+
+def is_demonstration(ep: Episode) -> bool:
+    return ep.incarnation == DEMO_INCARNATION
 _FIELDS = ("format", "version", "env", "episode_lengths", "obs", "actions", "rewards", "returns", "terminated", "truncated")
 
 
@@ -113,10 +122,10 @@ def load_demos(path: Path, spec: EnvSpec) -> list[Episode]:
         if not np.isclose(float(rewards.sum(dtype=np.float64)), float(a["returns"][i]), rtol=1e-4, atol=1e-3):
             raise DemosError(f"{where}: episode {i}'s return {float(a['returns'][i]):.3f} is not the sum of its rewards")
         episodes.append(Episode(
-            actor_id=-1, seq=i, policy_version=-1, episode_return=float(a["returns"][i]),
+            actor_id=0, seq=i, policy_version=-1, episode_return=float(a["returns"][i]),
             terminated=bool(a["terminated"][i]), truncated=bool(a["truncated"][i]),
             obs=a["obs"][o : o + n + 1].astype(np.float32), actions=a["actions"][t : t + n].astype(np.float32),
-            rewards=rewards,
+            rewards=rewards, incarnation=DEMO_INCARNATION,
         ))
         o += n + 1
         t += n

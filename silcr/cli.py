@@ -115,15 +115,17 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
             raise ConfigError("--expert-capacity", f"{cfg.expert_capacity} transitions cannot hold one whole episode of "
                                                    f"{cfg.env}, which runs up to {spec.time_limit} steps; D_E would stay "
                                                    f"empty or stop admitting longer episodes. Use at least {spec.time_limit}")
-        if cfg.demos and role in ("train", "buffer"):
+        if role in ("train", "buffer"):
             from pathlib import Path
 
             from silcr.common.demos import DemosError, load_demos
 
-            try:
-                load_demos(Path(cfg.demos), spec)
-            except DemosError as e:
-                raise ConfigError("--demos", str(e)) from None
+            for option, path in (("--demos", cfg.demos), ("--expert-init", cfg.expert_init)):
+                try:
+                    if path:
+                        load_demos(Path(path), spec)
+                except DemosError as e:
+                    raise ConfigError(option, str(e)) from None
     try:
         session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
     except ValueError as e:

@@ -122,3 +122,41 @@ def test_demos_command_records_a_checkpoint_and_sqil_accepts_it(tmp_path):
     r = subprocess.run([sys.executable, "-m", "silcr.cli", "buffer", "--run", "x", "--env", ENV, "--algo", "sqil"],
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 2 and "needs a demonstrations file" in r.stderr
+
+
+def test_a_warm_started_expert_buffer_gives_way_only_to_better_own_episodes(tmp_path, spec):
+    """--expert-init: demonstrations enter D_E first and are ranked and evicted like the agent's own episodes."""
+    from silcr.buffer_service import snapshot
+    from silcr.buffer_service.service import open_replay
+
+    save_demos(tmp_path / "d.npz", ENV, [make_episode(20, ret=r, seq=i, start=1000 * (i + 1))
+                                         for i, r in enumerate([50.0, 60.0, 70.0])])
+    cfg = Config(run="warm", runs_dir=str(tmp_path), env=ENV, expert_capacity=40, learning_starts=10,
+                 expert_init=str(tmp_path / "d.npz"))
+    state, _ = open_replay(cfg, spec)
+    assert sorted(state.heap.returns()) == [60.0, 70.0]  # the best that fit M = 40, best first
+    assert state.stats()["expert_init_transitions"] == 40
+    for i in range(5):  # worse own episodes: the demonstrations stay
+        state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=10.0 + i, seq=i)))
+    assert sorted(state.heap.returns()) == [60.0, 70.0] and state.stats()["expert_init_transitions"] == 40
+    state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=65.0, seq=5)))  # better than one of them
+    assert sorted(state.heap.returns()) == [65.0, 70.0] and state.stats()["expert_init_transitions"] == 20
+    # A checkpoint keeps them as demonstrations, and a resumed buffer does not add them again.
+    snapshot.write(tmp_path / "warm" / "checkpoints" / "buffer.ckpt", snapshot.take(state))
+    back, snap = open_replay(Config(**cfg.to_dict() | {"resume": True}), spec)
+    assert snap is not None and sorted(back.heap.returns()) == [65.0, 70.0]
+    assert back.stats()["expert_init_transitions"] == 20
+    state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=90.0, seq=6)))  # evicts the lowest: the agent's 65
+    assert sorted(state.heap.returns()) == [70.0, 90.0] and state.stats()["expert_init_transitions"] == 20
+    state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=95.0, seq=7)))
+    assert state.stats()["expert_init_transitions"] == 0  # all pushed out by better own episodes
+
+
+@pytest.mark.parametrize("args, needle", [
+    (["--algo", "sac", "--expert-init", "x.npz"], "only --algo silcr"),
+    (["--expert-init", "nowhere.npz"], "no such file"),
+])
+def test_bad_expert_init_options_exit_2(args, needle):
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "train", "--env", ENV, *args], capture_output=True, text=True,
+                       cwd=REPO, timeout=60)
+    assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
