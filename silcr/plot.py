@@ -74,12 +74,17 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
                     "q_bound_exceeded" in all_rows[0], past[0] if past else None)
 
 
+#: Settings of SILCR's D_E: a SAC or SQIL run carries their defaults, which say nothing about it.
+SILCR_ONLY = {"expert_admission", "expert_init"}
+
+
 def distinguish(runs: list[RunCurve]) -> list[RunCurve]:
     """Add to each label the settings that differ between `runs` (so different settings never share a curve)."""
     keys = sorted({k for r in runs for k in r.config} - NOT_A_SETTING)
     differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs}) > 1]
     for r in runs:
-        extra = " ".join(f"{k}={r.config.get(k)}" for k in differing)
+        extra = " ".join(f"{k}={r.config.get(k)}" for k in differing
+                         if k not in SILCR_ONLY or r.config.get("algo") == "silcr")
         r.algo = f"{r.algo} {extra}" if extra else r.algo
     return runs
 

@@ -130,16 +130,17 @@ def test_plot_keeps_runs_of_different_settings_apart_and_plots_other_columns(tmp
 
     dirs = []
     for i, (tau, admission, seed) in enumerate([(0.05, "return", 0), (0.05, "return", 1), (0.005, "return", 0),
-                                               (0.005, "recent", 0)]):
+                                               (0.005, "recent", 0), (0.005, "return", 0)]):
         d = tmp_path / f"r{i}"
         d.mkdir()
-        Config(run=d.name, env="Hopper-v5", tau=tau, expert_admission=admission, seed=seed).save(d / "config.toml")
+        algo = "sac" if i == 4 else "silcr"  # SAC has no D_E: its label leaves expert_admission out
+        Config(run=d.name, env="Hopper-v5", algo=algo, tau=tau, expert_admission=admission, seed=seed).save(d / "config.toml")
         (d / "progress.csv").write_text("env_steps,eval_return,expert_min_return,q_bound_exceeded\n"
                                         f"0,1,,0\n1000,{2 + i},{5 + i},{i}\n2000,{3 + i},{6 + i},{2 * i}\n")
         dirs.append(d)
     runs = distinguish([load_run(d) for d in dirs])
     assert [r.algo for r in runs] == ["silcr expert_admission=return tau=0.05"] * 2 + [
-        "silcr expert_admission=return tau=0.005", "silcr expert_admission=recent tau=0.005"]
+        "silcr expert_admission=return tau=0.005", "silcr expert_admission=recent tau=0.005", "sac-episodic tau=0.005"]
     table = summary_markdown(runs)
     assert "| silcr expert_admission=return tau=0.05 | 2 |" in table and "1/2 (1,000)" in table
     assert "| silcr expert_admission=recent tau=0.005 | 1 |" in table and "1/1 (1,000)" in table
