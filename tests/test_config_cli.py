@@ -83,6 +83,8 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
         (["train", "--env", "silcr/Hopper-v5", "--algo", "sac", "--reward", "dense"], "--reward"),
         (["train", "--algo", "sac", "--expert-admission", "recent"], "--expert-admission"),
         (["train", "--tanh-log-prob", "approx"], "--tanh-log-prob"),
+        (["train", "--algo", "sac", "--expert-init", "x.npz"], "--expert-init: only --algo silcr"),
+        (["train", "--expert-init", "nowhere.npz"], "--expert-init: no such file"),
     ],
 )
 def test_bad_options_exit_2_with_one_line_and_no_traceback(args, needle):

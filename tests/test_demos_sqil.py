@@ -151,12 +151,3 @@ def test_a_warm_started_expert_buffer_gives_way_only_to_better_own_episodes(tmp_
     state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=95.0, seq=7)))
     assert state.stats()["expert_init_transitions"] == 0  # all pushed out by better own episodes
 
-
-@pytest.mark.parametrize("args, needle", [
-    (["--algo", "sac", "--expert-init", "x.npz"], "only --algo silcr"),
-    (["--expert-init", "nowhere.npz"], "no such file"),
-])
-def test_bad_expert_init_options_exit_2(args, needle):
-    r = subprocess.run([sys.executable, "-m", "silcr.cli", "train", "--env", ENV, *args], capture_output=True, text=True,
-                       cwd=REPO, timeout=60)
-    assert r.returncode == 2 and needle in r.stderr and "Traceback" not in r.stderr, r.stderr
