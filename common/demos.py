@@ -40,6 +40,8 @@ DEMO_INCARNATION = 2**63 - 1
 
 def is_demonstration(ep: Episode) -> bool:
     return ep.incarnation == DEMO_INCARNATION
+
+
 _FIELDS = ("format", "version", "env", "episode_lengths", "obs", "actions", "rewards", "returns", "terminated", "truncated")
 
 

@@ -137,7 +137,7 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
         ax.set_xlabel("environment steps")
         ax.set_ylabel(ylabel)
         if logy:
-            positive = all((r.returns > 0).all() for algo in groups[env].values() for r in algo)
+            positive = all((r.returns > 0).all() for seeds in groups[env].values() for r in seeds)
             ax.set_yscale("log" if positive else "symlog")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")

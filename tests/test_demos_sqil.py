@@ -150,4 +150,3 @@ def test_a_warm_started_expert_buffer_gives_way_only_to_better_own_episodes(tmp_
     assert sorted(state.heap.returns()) == [70.0, 90.0] and state.stats()["expert_init_transitions"] == 20
     state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=95.0, seq=7)))
     assert state.stats()["expert_init_transitions"] == 0  # all pushed out by better own episodes
-
