@@ -142,7 +142,7 @@ def _over_zenoh(env_id: str, payloads: list[bytes], quick: bool) -> tuple[float,
             wait_until(lambda: stats.get(keys.stats_buffer).get("episodes_received", 0) >= len(payloads), 120, "episodes")
             inserts = 1000 * len(payloads) / (time.perf_counter() - t0)
             # The learner's own client: 4 batches per query, 4 queries in flight.
-            stream = ZenohBatchStream(s, keys, 4, 128, 4, StopFlag())
+            stream = ZenohBatchStream(s, keys, P.SampleRequest(4, 128), 4, StopFlag())
             stream.wait_for_buffer()
             n = 50 if quick else 250
             t0 = time.perf_counter()

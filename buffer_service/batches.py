@@ -2,7 +2,8 @@
 
 SILCR: each batch is half D_O transitions with reward 0 and half D_E transitions
 with reward 1 (`expert` first half rounded down, as the official 64 + 64).
-SAC: the whole batch from D_O with the rewards the env gave (dense or episodic).
+SAC and GASIL: the whole batch from D_O with the rewards the env gave (dense or episodic).
+GASIL's discriminator rows (`discriminator_rows`): D_E transitions and the newest D_O ones.
 """
 
 from __future__ import annotations
@@ -58,3 +59,13 @@ def compose_batches(
         rewards[:, :n_online] = 0.0
         rewards[:, n_online:] = 1.0
     return out
+
+
+def discriminator_rows(fifo: OnlineFifo, heap: ExpertHeap, n: int, recent_window: int,
+                       rng: np.random.Generator) -> dict[str, np.ndarray]:
+    """GASIL's discriminator data: `n` (s, a) pairs from D_E (label 1) and `n` from the newest
+    `recent_window` transitions of D_O (label 0: what the current policy does)."""
+    expert_obs, expert_actions = heap.index.gather_state_actions(heap.storage, n, rng)
+    recent_obs, recent_actions = fifo.gather_recent(n, recent_window, rng)
+    return {"disc_expert_obs": expert_obs, "disc_expert_actions": expert_actions,
+            "disc_recent_obs": recent_obs, "disc_recent_actions": recent_actions}

@@ -111,3 +111,16 @@ class OnlineFifo:
         if not self._episodes:
             raise LookupError("online buffer is empty")
         self.index.gather(self.storage, n, rng, out, rows, rewards)
+
+    def gather_recent(self, n: int, window: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """`n` (state, action) pairs drawn uniformly from the newest whole episodes that hold
+        at least `window` transitions together (all of D_O if it holds fewer)."""
+        if not self._episodes:
+            raise LookupError("online buffer is empty")
+        slots, held = [], 0
+        for slot, ep in reversed(self._episodes):
+            slots.append(slot)
+            held += ep.length
+            if held >= window:
+                break
+        return self.index.gather_state_actions(self.storage, n, rng, np.asarray(slots, np.int64))

@@ -23,13 +23,13 @@ import zenoh
 
 from silcr.common import protocol as P
 from silcr.common.clients import StatsPublisher, Throttle, stop_on_shutdown
-from silcr.common.config import Config
+from silcr.common.config import RANKED_ALGOS, Config
 from silcr.common.demos import is_demonstration, load_demos
 from silcr.common.envs import EnvSpec
 from silcr.common.lifecycle import StopFlag
 from silcr.common.zenoh_session import open_session, session_config
 
-from .batches import compose_batches, online_rows
+from .batches import compose_batches, discriminator_rows, online_rows
 from .expert_heap import ExpertHeap
 from .online_fifo import OnlineFifo
 from . import snapshot
@@ -39,7 +39,7 @@ log = logging.getLogger("buffer")
 
 
 class ReplayState:
-    """D_O, D_E (SILCR only), the limiter and every counter the stats topic reports."""
+    """D_O, D_E (SILCR, GASIL and SQIL), the limiter and every counter the stats topic reports."""
 
     def __init__(self, cfg: Config, spec: EnvSpec) -> None:
         self.cfg = cfg
@@ -47,7 +47,10 @@ class ReplayState:
         self.constant_rewards = cfg.constant_rewards
         self.fifo = OnlineFifo(cfg.online_capacity, spec.max_episode_steps)
         self.heap: ExpertHeap | None = None
-        if cfg.algo == "silcr":
+        # D_E ranks the agent's own episodes (SILCR, GASIL); only SILCR and SQIL mix it into batches.
+        self.ranked = cfg.algo in RANKED_ALGOS
+        self.mixed = cfg.constant_rewards
+        if self.ranked:
             self.heap = ExpertHeap(cfg.expert_capacity, cfg.expert_admission)
         elif cfg.algo == "sqil":
             # SQIL: D_E is the demonstrations, loaded once and never changed (reference.md).
@@ -89,7 +92,7 @@ class ReplayState:
 
     def expert_init_transitions(self) -> int:
         """Demonstration transitions still in D_E (SILCR with --expert-init)."""
-        if self.heap is None or self.cfg.algo != "silcr":
+        if not self.ranked:
             return 0
         return sum(e.length for e in self.heap.episodes() if is_demonstration(e))
 
@@ -116,7 +119,7 @@ class ReplayState:
             del self.last_seq[next(iter(self.last_seq))]
         self.last_seq[sender] = ep.seq
         self.fifo.add(ep)
-        if self.heap is not None and self.cfg.algo == "silcr":
+        if self.ranked:
             self.heap.offer(ep)
         self.limiter.record_insert(ep.length)
         self.episodes_received += 1
@@ -156,6 +159,9 @@ class ReplayState:
         updates the inserted transitions are due, as the single-process loop wants.
         """
         self.sample_requests += 1
+        if req.disc_batch_size and self.heap is None:
+            self.sample_requests_rejected += 1
+            raise P.ProtocolError("bad_request", f"disc_batch_size: this buffer keeps no D_E (--algo {self.cfg.algo})")
         if self.limiter.warming_up() or (self.heap is not None and self.heap.num_episodes == 0):
             self.not_ready_replies += 1
             return P.BatchReply("not_ready", self.meta(), reason="warmup", retry_after_ms=200)
@@ -163,13 +169,19 @@ class ReplayState:
         if k == 0:
             self.not_ready_replies += 1
             return P.BatchReply("not_ready", self.meta(), reason="rate_limited", retry_after_ms=20)
+        mixed_heap = self.heap if self.mixed else None
         arrays = compose_batches(
-            self.fifo, self.heap, k, req.batch_size, self.rng, self.constant_rewards, self.spec.obs_dim, self.spec.act_dim
+            self.fifo, mixed_heap, k, req.batch_size, self.rng, self.constant_rewards, self.spec.obs_dim, self.spec.act_dim
         )
+        if req.disc_batch_size:
+            assert self.heap is not None
+            arrays |= discriminator_rows(self.fifo, self.heap, k * req.disc_batch_size, req.recent_window, self.rng)
         self.limiter.record_sample(k)
         self.batches_served += k
         meta = self.meta() | {"batches": k, "batch_size": req.batch_size,
-                              "online_rows": online_rows(req.batch_size, self.heap is not None)}
+                              "online_rows": online_rows(req.batch_size, mixed_heap is not None)}
+        if req.disc_batch_size:
+            meta["disc_batch_size"] = req.disc_batch_size
         return P.BatchReply("ok", meta, arrays)
 
     # -- checkpoints ------------------------------------------------------------
@@ -183,7 +195,7 @@ class ReplayState:
             "last_seq": [[a, inc, seq] for (a, inc), seq in self.last_seq.items()],
             "fifo": self.fifo.state(),
             # SQIL's D_E is the demonstrations, loaded again from --demos at every start.
-            "heap": self.heap.state() if self.heap is not None and self.cfg.algo == "silcr" else None,
+            "heap": self.heap.state() if self.ranked else None,
             "limiter": self.limiter.state(),
         }
 
@@ -195,7 +207,7 @@ class ReplayState:
         self.rejections.update(c["rejections"])
         self.last_seq = {(int(a), int(inc)): int(seq) for a, inc, seq in state["last_seq"]}
         self.fifo.restore(state["fifo"])
-        if state["heap"] is not None and self.heap is not None and self.cfg.algo == "silcr":
+        if state["heap"] is not None and self.ranked:
             self.heap.restore(state["heap"])
         self.limiter.restore(state["limiter"])
 

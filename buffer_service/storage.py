@@ -143,3 +143,18 @@ class EpisodeIndex:
         # gymnasium may report both on the same step; termination wins (no bootstrap).
         out["truncated"][rows] = last & self.truncated[slot] & ~terminated
         out["policy_version"][rows] = self.version[slot]
+
+    def gather_state_actions(self, storage: RowStorage, n: int, rng: np.random.Generator,
+                             slots: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+        """`n` (state, action) pairs drawn uniformly over the transitions of `slots` (default: all)."""
+        if slots is None:
+            if self._cum is None:
+                self._cum = np.cumsum(self.length)
+            cum, lengths, first = self._cum, self.length, self.row
+        else:
+            lengths, first = self.length[slots], self.row[slots]
+            cum = np.cumsum(lengths)
+        g = rng.integers(0, int(cum[-1]), size=n)
+        i = np.searchsorted(cum, g, side="right")
+        r = first[i] + g - (cum[i] - lengths[i])
+        return storage.obs[r], storage.actions[r]

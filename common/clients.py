@@ -200,10 +200,10 @@ class ZenohBatchStream(BatchStream):
     """Keeps `requests_in_flight` sample queries of `batches_per_request` batches outstanding, so the
     next batches cross the network while the current one trains."""
 
-    def __init__(self, session: zenoh.Session, keys: P.Keys, batches_per_request: int, batch_size: int,
-                 requests_in_flight: int, stop: StopFlag) -> None:
+    def __init__(self, session: zenoh.Session, keys: P.Keys, request: P.SampleRequest, requests_in_flight: int,
+                 stop: StopFlag) -> None:
         super().__init__(stop)
-        self._request = P.SampleRequest(batches_per_request, batch_size).encode()
+        self._request = request.encode()
         self._in_flight_limit = requests_in_flight
         self._querier = session.declare_querier(keys.sample, timeout=QUERY_TIMEOUT_S,
                                                 consolidation=zenoh.ConsolidationMode.NONE)
@@ -248,10 +248,10 @@ class InProcessBatchStream(BatchStream):
     """Samples straight from the buffer's state, keeping exactly the configured updates per step:
     it serves only the updates the inserted transitions are due (never runs ahead), and never waits."""
 
-    def __init__(self, replay: Replay, batches_per_request: int, batch_size: int, stop: StopFlag | None = None) -> None:
+    def __init__(self, replay: Replay, request: P.SampleRequest, stop: StopFlag | None = None) -> None:
         super().__init__(stop)
         self._replay = replay
-        self._request = P.SampleRequest(batches_per_request, batch_size)
+        self._request = request
 
     def get(self) -> P.BatchReply | None:
         return self._account(self._replay.sample(self._request, keep_ratio=True))

@@ -21,7 +21,9 @@ import tomli_w
 from silcr.common.envs import EPISODIC_IDS, REWARD_MODES
 from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
 
-ALGOS = ("silcr", "sac", "sqil")
+ALGOS = ("silcr", "sac", "sqil", "gasil")
+RANKED_ALGOS = ("silcr", "gasil")  # D_E ranks the agent's own episodes by return
+GASIL_REWARD_FORMS = ("logit", "positive", "negative")  # r_D from the discriminator (learner.gasil)
 EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.expert_heap)
 TANH_LOG_PROB_FORMS = ("exact", "official")  # log(1 - tanh^2) in the policy's log-probability (learner.sac)
 DEVICES = ("auto", "cpu", "cuda")
@@ -53,8 +55,9 @@ class Config:
     runs_dir: str = _opt("runs", SERVICE, "directory holding one sub-directory per run")
     env: str = _opt("Hopper-v5", ALL, "gymnasium environment id (continuous control, flat Box spaces)")
     algo: str = _opt("silcr", ALL, "silcr: constant 0/1 rewards from D_O and the top-M D_E; sac: plain SAC on the env's reward; "
-                     "sqil: constant 0/1 rewards with D_E fixed to --demos", choices=ALGOS)
-    reward: str = _opt("episodic", ALL, "reward the actors' env gives (silcr always uses episodic)", choices=REWARD_MODES)
+                     "sqil: constant 0/1 rewards with D_E fixed to --demos; gasil: SAC on the env's reward plus a discriminator's "
+                     "reward for looking like the top-M D_E (docs/algorithm.md, \"GASIL\")", choices=ALGOS)
+    reward: str = _opt("episodic", ALL, "reward the actors' env gives to sac and gasil (silcr and sqil always use episodic)", choices=REWARD_MODES)
     seed: int = _opt(0, ALL, "base seed; actor i uses seed + i")
     # --- Zenoh -----------------------------------------------------------------
     connect: list[str] = _opt([], ALL | {"monitor"}, "Zenoh endpoints to connect to (default: the local router)", nargs="+")
@@ -98,6 +101,18 @@ class Config:
     torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: torch's default)")
     batches_per_request: int = _opt(4, {"train", "learner"}, "batches fetched per sample query")
     requests_in_flight: int = _opt(2, {"train", "learner"}, "sample queries kept in flight so the learner never waits on the network")
+    # --- GASIL (learner.gasil; sources in docs/algorithm.md, "GASIL") -------------
+    gasil_alpha: float = _opt(0.1, {"train", "learner"}, "weight of the discriminator's reward: r = r_env + alpha * r_D (GASIL paper: 0.1)")
+    gasil_reward: str = _opt("logit", {"train", "learner"}, "r_D from D = P(s, a is from D_E): logit (log D - log(1-D), zero where D cannot "
+                             "tell), positive (-log(1-D): a survival bonus) or negative (log D: a bonus for ending)", choices=GASIL_REWARD_FORMS)
+    disc_hidden: list[int] = _opt([100, 100], {"train", "learner"}, "discriminator hidden layers, tanh (ASIL, DAC: 100 100)", nargs="+")
+    disc_lr: float = _opt(3e-4, {"train", "learner"}, "discriminator Adam learning rate")
+    disc_grad_penalty: float = _opt(10.0, {"train", "learner"}, "gradient-penalty weight of the discriminator (DAC: 10; 0: off)")
+    disc_batch_size: int = _opt(64, {"train", "learner"}, "discriminator rows per class per update: D_E and recent D_O")
+    disc_interval: int = _opt(1, {"train", "learner"}, "SAC updates per discriminator update")
+    disc_warmup: int = _opt(0, {"train", "learner"}, "discriminator updates before its reward enters the SAC update")
+    recent_window: int = _opt(5_000, {"train", "learner"}, "the discriminator's policy rows come from the newest episodes of D_O "
+                              "that hold this many transitions")
     # --- actors ----------------------------------------------------------------
     actors: int = _opt(1, {"train"}, "number of actors (processes; with --single-process, stepped in turn)")
     single_process: bool = _opt(False, {"train"}, "run buffer, learner and actors in this one process, in a fixed order, "
@@ -117,7 +132,7 @@ class Config:
 
     @property
     def actor_reward(self) -> str:
-        return self.reward if self.algo == "sac" else "episodic"  # SILCR and SQIL ignore env rewards
+        return self.reward if self.algo in ("sac", "gasil") else "episodic"  # SILCR and SQIL ignore env rewards
 
     @property
     def constant_rewards(self) -> bool:
@@ -264,10 +279,11 @@ def validate(cfg: Config, role: str) -> None:
         raise ConfigError("--run", str(e)) from None
     for name in ("online_capacity", "expert_capacity", "total_steps", "weights_interval", "eval_interval",
                  "checkpoint_interval", "actors", "envs_per_actor", "batches_per_request", "requests_in_flight",
-                 "weights_poll_steps"):
+                 "weights_poll_steps", "disc_batch_size", "disc_interval", "recent_window"):
         positive(name)
     positive("batch_size", 2)
     positive("eval_episodes", 0)
+    positive("disc_warmup", 0)
     positive("learning_starts", 0)
     positive("actor_id", -1)
     positive("torch_threads", 0)
@@ -281,13 +297,17 @@ def validate(cfg: Config, role: str) -> None:
         raise ConfigError("--gamma", f"must be in (0, 1], got {cfg.gamma}")
     if not 0 < cfg.tau <= 1:
         raise ConfigError("--tau", f"must be in (0, 1], got {cfg.tau}")
-    for name in ("lr", "init_alpha"):
+    for name in ("lr", "init_alpha", "disc_lr"):
         if not getattr(cfg, name) > 0:
             raise ConfigError(option_name(name), f"must be > 0, got {getattr(cfg, name)}")
     if cfg.grad_clip < 0:
         raise ConfigError("--grad-clip", f"must be >= 0, got {cfg.grad_clip}")
-    if not cfg.hidden or any(h < 1 for h in cfg.hidden):
-        raise ConfigError("--hidden", f"needs one or more positive layer sizes, got {cfg.hidden}")
+    for name in ("hidden", "disc_hidden"):
+        if not getattr(cfg, name) or any(h < 1 for h in getattr(cfg, name)):
+            raise ConfigError(option_name(name), f"needs one or more positive layer sizes, got {getattr(cfg, name)}")
+    for name in ("gasil_alpha", "disc_grad_penalty"):
+        if not getattr(cfg, name) >= 0:
+            raise ConfigError(option_name(name), f"must be >= 0, got {getattr(cfg, name)}")
     if cfg.buffer_checkpoint_interval < 0:
         raise ConfigError("--buffer-checkpoint-interval", f"must be >= 0, got {cfg.buffer_checkpoint_interval}")
     if cfg.stats_interval <= 0:
@@ -306,7 +326,7 @@ def validate(cfg: Config, role: str) -> None:
             raise ConfigError("--expert-init", f"no such file: {cfg.expert_init}")
         if cfg.expert_admission != "return" and cfg.algo != "silcr":
             raise ConfigError("--expert-admission", f"only --algo silcr fills D_E from its own episodes (got --algo {cfg.algo})")
-    if cfg.env in EPISODIC_IDS and cfg.algo == "sac" and cfg.reward == "dense":
+    if cfg.env in EPISODIC_IDS and cfg.algo in ("sac", "gasil") and cfg.reward == "dense":
         raise ConfigError("--reward", f"{cfg.env} is {EPISODIC_IDS[cfg.env]} with the episodic reward; for the dense "
                                       f"reward use --env {EPISODIC_IDS[cfg.env]}")
     if cfg.learning_starts >= cfg.online_capacity:

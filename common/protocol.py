@@ -367,15 +367,24 @@ def decode_weights(payload: bytes) -> Weights:
 
 @dataclass(frozen=True)
 class SampleRequest:
-    """Ask for `batches` mixed batches of `batch_size` transitions each (one update each)."""
+    """Ask for `batches` mixed batches of `batch_size` transitions each (one update each).
+
+    GASIL's discriminator also needs, per batch, `disc_batch_size` D_E transitions and
+    as many from the newest `recent_window` transitions of D_O (its positives and
+    negatives). Both are 0 unless asked for, and then the request is the silcr 0.2
+    message, so buffers and learners from before these fields still understand each other.
+    """
 
     batches: int = 1
     batch_size: int = 128
+    disc_batch_size: int = 0
+    recent_window: int = 0
 
     def encode(self) -> bytes:
-        return msgpack.packb(
-            {"v": SCHEMA_VERSION, "kind": "sample", "batches": self.batches, "batch_size": self.batch_size}
-        )
+        msg: dict[str, Any] = {"v": SCHEMA_VERSION, "kind": "sample", "batches": self.batches, "batch_size": self.batch_size}
+        if self.disc_batch_size:
+            msg |= {"disc_batch_size": self.disc_batch_size, "recent_window": self.recent_window}
+        return msgpack.packb(msg)
 
     @staticmethod
     def decode(payload: bytes) -> "SampleRequest":
@@ -386,7 +395,13 @@ class SampleRequest:
             raise ProtocolError("bad_request", f"batches={batches} is outside [1, {MAX_BATCHES_PER_REQUEST}]")
         if not 2 <= batch_size <= MAX_BATCH_SIZE:
             raise ProtocolError("bad_request", f"batch_size={batch_size} is outside [2, {MAX_BATCH_SIZE}]")
-        return SampleRequest(batches, batch_size)
+        disc = _get(msg, "disc_batch_size", int) if "disc_batch_size" in msg else 0
+        window = _get(msg, "recent_window", int) if disc else 0
+        if not 0 <= disc <= MAX_BATCH_SIZE:
+            raise ProtocolError("bad_request", f"disc_batch_size={disc} is outside [0, {MAX_BATCH_SIZE}]")
+        if disc and window < 1:
+            raise ProtocolError("bad_request", f"recent_window={window} must be >= 1 with disc_batch_size")
+        return SampleRequest(batches, batch_size, disc, window)
 
 
 BATCH_FIELDS = {
@@ -397,6 +412,14 @@ BATCH_FIELDS = {
     "terminated": "|u1",
     "truncated": "|u1",
     "policy_version": "<i8",
+}
+#: GASIL's discriminator rows, in a reply only when the request asked for them
+#: (`disc_batch_size` rows per batch each): D_E transitions and recent D_O transitions.
+DISC_FIELDS = {
+    "disc_expert_obs": "<f4",
+    "disc_expert_actions": "<f4",
+    "disc_recent_obs": "<f4",
+    "disc_recent_actions": "<f4",
 }
 
 
@@ -414,6 +437,8 @@ class BatchReply:
         msg: dict[str, Any] = {"v": SCHEMA_VERSION, "kind": "batch", "status": self.status, "meta": self.meta}
         if self.status == "ok":
             msg["arrays"] = {k: pack_array(np.asarray(self.arrays[k], dtype=dt)) for k, dt in BATCH_FIELDS.items()}
+            msg["arrays"] |= {k: pack_array(np.asarray(self.arrays[k], dtype=dt))
+                              for k, dt in DISC_FIELDS.items() if k in self.arrays}
         else:
             msg["reason"] = self.reason
             msg["retry_after_ms"] = int(self.retry_after_ms)
@@ -427,6 +452,7 @@ class BatchReply:
         if status == "ok":
             raw = _get(msg, "arrays", dict)
             arrays = {k: unpack_array(raw.get(k), k, dt) for k, dt in BATCH_FIELDS.items()}
+            arrays |= {k: unpack_array(raw[k], k, dt) for k, dt in DISC_FIELDS.items() if k in raw}
             return BatchReply("ok", meta, arrays)
         return BatchReply(status, meta, reason=str(msg.get("reason", "")), retry_after_ms=int(msg.get("retry_after_ms", 0)))
 

@@ -74,7 +74,7 @@ def run_single_process(cfg: Config) -> int:
     actors = [Actor(actor_cfg, spec, i, InProcessEpisodeWriter(replay),
                     board.client(policy_factory(spec), random_initial_weights(actor_cfg, spec, actor_cfg.seed + i)()))
               for i in range(cfg.actors)]
-    stream = InProcessBatchStream(replay, cfg.batches_per_request, cfg.batch_size, stop)
+    stream = InProcessBatchStream(replay, learner.sample_request(), stop)
     writer = snapshot.BackgroundWriter(checkpoint_path(cfg))
     if snap is not None and "writer" in snap.parts:
         writer.restore(snap.parts["writer"])

@@ -10,6 +10,8 @@ from typing import Any
 #: The critics' health at the last update before the row (docs/algorithm.md, "Divergence"):
 #: `q_bound_exceeded` counts every update so far whose largest Q passed the soft-Q bound.
 DIVERGENCE_COLUMNS = ["q_mean", "q_max", "target_q_mean", "log_pi_mean", "q_bound", "q_bound_exceeded"]
+#: GASIL's discriminator at the last update before the row (empty for other algorithms).
+GASIL_COLUMNS = ["disc_loss", "disc_acc_expert", "disc_acc_policy", "gasil_reward_mean"]
 #: D_E as the buffer service last described it (empty for plain SAC).
 EXPERT_COLUMNS = ["expert_transitions", "expert_episodes", "expert_min_return", "expert_max_return"]
 
@@ -27,6 +29,7 @@ PROGRESS_COLUMNS = [
     "updates_per_s",
     *DIVERGENCE_COLUMNS,
     *EXPERT_COLUMNS,
+    *GASIL_COLUMNS,
 ]
 
 

@@ -31,7 +31,8 @@ from silcr.common.zenoh_session import open_session, session_config
 
 from .checkpoint import load_checkpoint, save_checkpoint
 from .evaluate import evaluate
-from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, ProgressLog
+from .gasil import Gasil, GasilHyper
+from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, GASIL_COLUMNS, ProgressLog
 from .sac import Sac, SacHyper, as_floats
 
 log = logging.getLogger("learner")
@@ -76,6 +77,11 @@ class Learner:
         hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
                       cfg.tanh_log_prob)
         self.sac = Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
+        self.gasil: Gasil | None = None
+        if cfg.algo == "gasil":
+            ghp = GasilHyper(cfg.gasil_alpha, cfg.gasil_reward, tuple(cfg.disc_hidden), cfg.disc_lr, cfg.disc_grad_penalty,
+                             cfg.disc_warmup)
+            self.gasil = Gasil(spec.obs_dim, spec.act_dim, ghp, self.device)
         self.incarnation = P.new_incarnation()
         self.updates = 0
         self.policy_version = 0
@@ -101,6 +107,7 @@ class Learner:
         self.policy_lag: collections.deque[float] = collections.deque(maxlen=200)  # D_O rows only
         self.expert_age: collections.deque[float] = collections.deque(maxlen=200)  # D_E rows
         self._last_stats: dict[str, torch.Tensor] = {}
+        self._disc_stats: dict[str, torch.Tensor] = {}  # the last discriminator update's
 
     # -- checkpoints -------------------------------------------------------------
     def counters(self) -> dict[str, Any]:
@@ -117,6 +124,10 @@ class Learner:
         if payload["sac"]["arch"] != self.sac.arch():
             raise ValueError(f"checkpoint networks {payload['sac']['arch']} do not match this run's {self.sac.arch()}")
         self.sac.load_state_dict(payload["sac"])
+        if self.gasil is not None:
+            if "gasil" not in payload:
+                raise ValueError(f"checkpoint {self.checkpoint_path} holds no GASIL discriminator (written by another --algo)")
+            self.gasil.load_state_dict(payload["gasil"])
         c = payload["counters"]
         self.updates, self.policy_version, self.env_steps = c["updates"], c["policy_version"], c["env_steps"]
         self.next_eval, self.evals, self.last_eval_return = c["next_eval"], c["evals"], c["last_eval_return"]
@@ -124,7 +135,10 @@ class Learner:
 
     def checkpoint(self) -> None:
         t0 = time.monotonic()
-        save_checkpoint(self.checkpoint_path, {"sac": self.sac.state_dict(), "counters": self.counters(), "config": self.cfg.to_dict()})
+        payload = {"sac": self.sac.state_dict(), "counters": self.counters(), "config": self.cfg.to_dict()}
+        if self.gasil is not None:
+            payload["gasil"] = self.gasil.state_dict()
+        save_checkpoint(self.checkpoint_path, payload)
         log.info("checkpoint at %d updates written in %.2fs", self.updates, time.monotonic() - t0)
 
     # -- weights and evaluation -----------------------------------------------------
@@ -160,7 +174,7 @@ class Learner:
                 "critic_loss": losses.get("critic_loss", float("nan")),
                 "actor_loss": losses.get("actor_loss", float("nan")),
                 "updates_per_s": self.updates / max(elapsed, 1e-9),
-                **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS},
+                **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS + GASIL_COLUMNS},
                 **{k: self.buffer_meta.get(k) for k in EXPERT_COLUMNS},
             }
         )
@@ -202,13 +216,34 @@ class Learner:
             self.checkpoint()
             self.next_checkpoint = (self.updates // self.cfg.checkpoint_interval + 1) * self.cfg.checkpoint_interval
 
+    def sample_request(self) -> P.SampleRequest:
+        """What this learner asks the buffer for: GASIL also wants its discriminator's rows."""
+        cfg = self.cfg
+        if self.gasil is None:
+            return P.SampleRequest(cfg.batches_per_request, cfg.batch_size)
+        return P.SampleRequest(cfg.batches_per_request, cfg.batch_size, cfg.disc_batch_size, cfg.recent_window)
+
     def train_on(self, arrays: dict[str, np.ndarray], batches: int, batch_size: int) -> None:
+        if self.gasil is not None and "disc_expert_obs" not in arrays:
+            raise RuntimeError("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
+                               "or predates GASIL (start it with --algo gasil)")
         t = batch_tensors(arrays, self.device)
         term = t["terminated"].float()
         trunc = t["truncated"].float()
         for b in range(batches):
             s = slice(b * batch_size, (b + 1) * batch_size)
-            self._last_stats = self.sac.update(t["obs"][s], t["actions"][s], t["rewards"][s], t["next_obs"][s], term[s], trunc[s])
+            rewards = t["rewards"][s]
+            if self.gasil is not None:
+                if self.updates % self.cfg.disc_interval == 0:
+                    m = self.cfg.disc_batch_size
+                    d = slice(b * m, (b + 1) * m)
+                    self._disc_stats = self.gasil.update(t["disc_expert_obs"][d], t["disc_expert_actions"][d],
+                                                         t["disc_recent_obs"][d], t["disc_recent_actions"][d])
+                # r_D from the discriminator as it is now, for this batch only (never stored)
+                rewards, r_d_mean = self.gasil.shape(rewards, t["obs"][s], t["actions"][s])
+            self._last_stats = self.sac.update(t["obs"][s], t["actions"][s], rewards, t["next_obs"][s], term[s], trunc[s])
+            if self.gasil is not None:
+                self._last_stats |= self._disc_stats | {"gasil_reward_mean": r_d_mean}
             self.updates += 1
 
     def poll(self) -> None:
@@ -281,7 +316,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         lrn = Learner(cfg, spec, ZenohWeightsServer(session, keys))
         log.info("learner for run %s on %s: %s, networks %s, batch %d, %d env steps",
                  cfg.run, lrn.device, cfg.algo, cfg.hidden, cfg.batch_size, cfg.total_steps)
-        stream = ZenohBatchStream(session, keys, cfg.batches_per_request, cfg.batch_size, cfg.requests_in_flight, stop)
+        stream = ZenohBatchStream(session, keys, lrn.sample_request(), cfg.requests_in_flight, stop)
         lrn.start()
         stream.wait_for_buffer()
         finished = False

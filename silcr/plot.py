@@ -65,26 +65,32 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     except (KeyError, ValueError) as e:
         raise ValueError(f"{path}: progress.csv lacks env_steps/{metric} numbers ({e})") from None
     algo = cfg.get("algo", "?")
-    # SILCR and SQIL ignore the env's reward; SAC's label says which one it had.
-    label = f"{algo}-{cfg.get('reward', '')}" if algo == "sac" else algo
-    if algo == "silcr" and cfg.get("expert_capacity", 50_000) != 50_000:
+    # SILCR and SQIL ignore the env's reward; SAC's and GASIL's labels say which one they had.
+    label = f"{algo}-{cfg.get('reward', '')}" if algo in ("sac", "gasil") else algo
+    if algo in ("silcr", "gasil") and cfg.get("expert_capacity", 50_000) != 50_000:
         label += f" (M={cfg['expert_capacity']:.0e})".replace("e+0", "e")  # the M ablation: one curve per M
     past = [float(r["env_steps"]) for r in all_rows if (r.get("q_bound_exceeded") or "0") not in ("", "0")]
     return RunCurve(path, cfg.get("env", "?"), label, int(cfg.get("seed", 0)), steps, values, cfg,
                     "q_bound_exceeded" in all_rows[0], past[0] if past else None)
 
 
-#: Settings of SILCR's D_E: a SAC or SQIL run carries their defaults, which say nothing about it.
-SILCR_ONLY = {"expert_admission", "expert_init"}
+#: Settings that only some algorithms use: other runs carry their defaults (or, from before
+#: the setting existed, nothing), which say nothing about them.
+ONLY_FOR = {"expert_admission": {"silcr"}, "expert_init": {"silcr"},
+            **{k: {"gasil"} for k in ("gasil_alpha", "gasil_reward", "disc_hidden", "disc_lr", "disc_grad_penalty",
+                                      "disc_batch_size", "disc_interval", "disc_warmup", "recent_window")}}
+
+
+def _applies(key: str, run: RunCurve) -> bool:
+    return key not in ONLY_FOR or run.config.get("algo") in ONLY_FOR[key]
 
 
 def distinguish(runs: list[RunCurve]) -> list[RunCurve]:
     """Add to each label the settings that differ between `runs` (so different settings never share a curve)."""
     keys = sorted({k for r in runs for k in r.config} - NOT_A_SETTING)
-    differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs}) > 1]
+    differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs if _applies(k, r)}) > 1]
     for r in runs:
-        extra = " ".join(f"{k}={r.config.get(k)}" for k in differing
-                         if k not in SILCR_ONLY or r.config.get("algo") == "silcr")
+        extra = " ".join(f"{k}={r.config.get(k)}" for k in differing if _applies(k, r))
         r.algo = f"{r.algo} {extra}" if extra else r.algo
     return runs
 

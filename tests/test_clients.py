@@ -65,7 +65,7 @@ def _replay(**over) -> ReplayState:
 def test_the_in_process_stream_keeps_exactly_the_ratio():
     replay = _replay(samples_per_insert=0.5)
     writer = InProcessEpisodeWriter(replay)
-    stream = InProcessBatchStream(replay, batches_per_request=4, batch_size=8)
+    stream = InProcessBatchStream(replay, P.SampleRequest(batches=4, batch_size=8))
     assert list(stream.due()) == [] and stream.not_ready == 1  # warming up: 20 transitions or fewer
     for seq, length in enumerate((10, 10, 10, 30, 7)):
         writer.write(make_episode(length, ret=1.0, seq=seq))

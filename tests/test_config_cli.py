@@ -85,6 +85,12 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
         (["train", "--tanh-log-prob", "approx"], "--tanh-log-prob"),
         (["train", "--algo", "sac", "--expert-init", "x.npz"], "--expert-init: only --algo silcr"),
         (["train", "--expert-init", "nowhere.npz"], "--expert-init: no such file"),
+        (["train", "--algo", "gasil", "--gasil-alpha", "-1"], "--gasil-alpha"),
+        (["train", "--algo", "gasil", "--gasil-reward", "sigmoid"], "--gasil-reward"),
+        (["train", "--algo", "gasil", "--disc-hidden", "0"], "--disc-hidden"),
+        (["train", "--algo", "gasil", "--disc-batch-size", "0"], "--disc-batch-size"),
+        (["train", "--algo", "gasil", "--recent-window", "0"], "--recent-window"),
+        (["train", "--algo", "gasil", "--env", "silcr/Hopper-v5", "--reward", "dense"], "--reward"),
     ],
 )
 def test_bad_options_exit_2_with_one_line_and_no_traceback(args, needle):
