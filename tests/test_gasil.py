@@ -225,12 +225,12 @@ def test_a_learner_given_no_discriminator_rows_says_why(tmp_path):
 
 @pytest.mark.slow
 def test_gasil_learns_inverted_pendulum_through_the_distributed_system(tmp_path):
-    """Router, buffer, learner and two actors over Zenoh, --algo gasil with the episodic reward."""
+    """Router, buffer, learner and two actors over Zenoh, --algo gasil with the dense reward (as the paper compares it)."""
     procs = Processes(tmp_path)
     run = "gasil"
     train = procs.start(
         "train", "train", "--run", run, "--runs-dir", str(tmp_path / "runs"),
-        "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--env", ENV, "--algo", "gasil",
+        "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--env", ENV, "--algo", "gasil", "--reward", "dense",
         "--expert-capacity", "5000", "--actors", "2", "--seed", "1", "--total-steps", "20000",
         "--learning-starts", "1000", "--hidden", "64", "64", "--eval-interval", "3000", "--eval-episodes", "5",
     )
