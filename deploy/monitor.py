@@ -72,7 +72,8 @@ def _table(snap: dict[str, Any]):
             t.add_row("buffer", k, _fmt(b[k]))
     lr = snap["learner"] or {}
     for k in ("env_steps", "updates", "policy_version", "last_eval_return", "updates_per_s", "duty_cycle", "batch_wait_ms_p99", "alpha",
-              "q_mean", "q_max", "q_bound", "q_bound_exceeded"):
+              "q_mean", "q_max", "q_bound", "q_bound_exceeded", "disc_loss", "disc_acc_expert", "disc_acc_policy",
+              "gasil_reward_mean"):
         if k in lr:
             t.add_row("learner", k, _fmt(lr[k]))
     for aid, a in sorted(snap["actors"].items()):

@@ -17,7 +17,7 @@ defaults below before numpy or torch is loaded.
 
 import os
 
-__version__ = "0.2.0"
+__version__ = "0.3.0"
 
 # silcr processes share their machine with each other (a learner beside its actors,
 # several runs of a sweep), and thread pools that busy-wait collapse when another

@@ -38,7 +38,8 @@ def test_paper_experiments_cover_the_papers_grid():
     paper = load_experiment(REPO / "experiments" / "paper.toml")
     assert set(paper["tasks"]) == {"Swimmer-v5", "Hopper-v5", "HalfCheetah-v5", "Walker2d-v5", "Humanoid-v5"}
     assert {(v["algo"], v.get("reward", "episodic")) for v in paper["variants"].values()} == {
-        ("silcr", "episodic"), ("sac", "episodic"), ("sac", "dense"), ("sqil", "episodic")}
+        ("silcr", "episodic"), ("sac", "episodic"), ("sac", "dense"), ("sqil", "episodic"), ("gasil", "dense"),
+        ("gasil", "episodic")}
     ablation = load_experiment(REPO / "experiments" / "ablation-m.toml")
     assert sorted(v["expert_capacity"] for v in ablation["variants"].values()) == [10_000, 20_000, 50_000, 100_000, 1_000_000]
     assert ablation["tasks"] == ["Humanoid-v5"]

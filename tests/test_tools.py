@@ -113,7 +113,8 @@ def test_a_checkpoint_that_would_run_code_is_refused_without_running_it(tmp_path
 def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
     from silcr.common.config import Config
 
-    specs = [("silcr", "episodic", 50_000), ("silcr", "episodic", 10_000), ("sac", "dense", 50_000), ("sqil", "episodic", 50_000)]
+    specs = [("silcr", "episodic", 50_000), ("silcr", "episodic", 10_000), ("sac", "dense", 50_000), ("sqil", "episodic", 50_000),
+             ("gasil", "dense", 50_000), ("gasil", "episodic", 10_000)]
     labels = []
     for i, (algo, reward, m) in enumerate(specs):
         d = tmp_path / f"r{i}"
@@ -121,7 +122,27 @@ def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
         Config(run=d.name, env="Humanoid-v5", algo=algo, reward=reward, expert_capacity=m).save(d / "config.toml")
         (d / "progress.csv").write_text("time,env_steps,updates,policy_version,eval_return\n0,0,0,0,1\n")
         labels.append(load_run(d).algo)
-    assert labels == ["silcr", "silcr (M=1e4)", "sac-dense", "sqil"]
+    assert labels == ["silcr", "silcr (M=1e4)", "sac-dense", "sqil", "gasil-dense", "gasil-episodic (M=1e4)"]
+
+
+def test_gasil_settings_label_only_gasil_runs(tmp_path):
+    """A run from before GASIL's options existed, or of another algorithm, is not labelled with them."""
+    from silcr.plot import distinguish
+
+    dirs = []
+    for i, (algo, alpha) in enumerate([("gasil", 0.1), ("gasil", 0.3), ("silcr", 0.1), ("sac", 0.1)]):
+        d = tmp_path / f"r{i}"
+        d.mkdir()
+        cfg = Config(run=d.name, env="Hopper-v5", algo=algo, reward="dense", gasil_alpha=alpha).to_dict()
+        if algo == "sac":  # an old run's config.toml: no GASIL keys at all
+            cfg = {k: v for k, v in cfg.items() if not k.startswith(("gasil_", "disc_", "recent_"))}
+        import tomli_w
+
+        (d / "config.toml").write_text(tomli_w.dumps(cfg))
+        (d / "progress.csv").write_text("time,env_steps,updates,policy_version,eval_return\n0,0,0,0,1\n")
+        dirs.append(d)
+    assert [r.algo for r in distinguish([load_run(d) for d in dirs])] == [
+        "gasil-dense gasil_alpha=0.1", "gasil-dense gasil_alpha=0.3", "silcr", "sac-dense"]
 
 
 def test_plot_keeps_runs_of_different_settings_apart_and_plots_other_columns(tmp_path):
