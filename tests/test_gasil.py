@@ -2,8 +2,6 @@
 
 from __future__ import annotations
 
-import csv
-
 import numpy as np
 import pytest
 import torch
@@ -16,7 +14,7 @@ from silcr.common.envs import EnvSpec
 from silcr.learner.gasil import Gasil, GasilHyper, reward_from_logit
 from silcr.learner.service import Learner
 from tests.conftest import make_episode
-from tests.helpers import Processes, free_port
+from tests.helpers import free_port, train_to_the_end
 
 ENV = "InvertedPendulum-v5"  # obs_dim 4, act_dim 1, as make_episode's defaults
 
@@ -226,19 +224,11 @@ def test_a_learner_given_no_discriminator_rows_says_why(tmp_path):
 @pytest.mark.slow
 def test_gasil_learns_inverted_pendulum_through_the_distributed_system(tmp_path):
     """Router, buffer, learner and two actors over Zenoh, --algo gasil with the dense reward (as the paper compares it)."""
-    procs = Processes(tmp_path)
-    run = "gasil"
-    train = procs.start(
-        "train", "train", "--run", run, "--runs-dir", str(tmp_path / "runs"),
-        "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--env", ENV, "--algo", "gasil", "--reward", "dense",
-        "--expert-capacity", "5000", "--actors", "2", "--seed", "1", "--total-steps", "20000",
+    rows, procs = train_to_the_end(
+        tmp_path, "gasil", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--env", ENV, "--algo", "gasil",
+        "--reward", "dense", "--expert-capacity", "5000", "--actors", "2", "--seed", "1", "--total-steps", "20000",
         "--learning-starts", "1000", "--hidden", "64", "64", "--eval-interval", "3000", "--eval-episodes", "5",
     )
-    try:
-        assert train.wait(600) == 0, procs.log("train")
-    finally:
-        procs.stop_all()
-    rows = list(csv.DictReader(open(tmp_path / "runs" / run / "progress.csv")))
     returns = [float(r["eval_return"]) for r in rows]
     assert returns[0] < 20, returns
     assert max(returns) >= 100, f"GASIL did not learn: eval returns {returns}"

@@ -19,11 +19,9 @@ checked by tests/test_buffers.py (batch composition) and tests/test_sac.py
 
 from __future__ import annotations
 
-import csv
-
 import pytest
 
-from tests.helpers import Processes, free_port
+from tests.helpers import free_port, train_to_the_end
 
 RANDOM_RETURN_CEILING = 20.0  # the untrained policy's evaluation must be below this
 BEST_RETURN_FLOOR = 100.0  # 20x the random policy's return of about 5
@@ -33,20 +31,12 @@ FINAL_RETURN_FLOOR = 50.0  # mean of the last two evaluations: 10x random (singl
 @pytest.mark.slow
 @pytest.mark.parametrize("launcher", ["distributed", "single-process"])
 def test_silcr_learns_inverted_pendulum_from_episodic_reward(tmp_path, launcher):
-    procs = Processes(tmp_path)
-    run = "learning"
     how = ["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"] if launcher == "distributed" else ["--single-process"]
-    train = procs.start(
-        "train", "train", "--run", run, "--runs-dir", str(tmp_path / "runs"), *how,
-        "--env", "InvertedPendulum-v5", "--algo", "silcr",
+    rows, procs = train_to_the_end(
+        tmp_path, "learning", *how, "--env", "InvertedPendulum-v5", "--algo", "silcr",
         "--actors", "2", "--seed", "1", "--total-steps", "20000", "--learning-starts", "1000",
         "--hidden", "64", "64", "--eval-interval", "3000", "--eval-episodes", "5",
     )
-    try:
-        assert train.wait(600) == 0, procs.log("train")
-    finally:
-        procs.stop_all()
-    rows = list(csv.DictReader(open(tmp_path / "runs" / run / "progress.csv")))
     returns = [float(r["eval_return"]) for r in rows]
     assert returns[0] < RANDOM_RETURN_CEILING, returns
     assert max(returns) >= BEST_RETURN_FLOOR, f"SILCR did not learn: eval returns {returns}"
