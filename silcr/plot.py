@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from silcr.common.config import Config
+
 
 @dataclass
 class RunCurve:
@@ -47,9 +49,14 @@ NOT_A_SETTING = {"run", "runs_dir", "seed", "resume", "connect", "listen", "zeno
                  "total_steps"}
 
 
+_DEFAULTS = Config(run="defaults").to_dict()
+
+
 def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     try:
-        cfg = tomllib.loads((path / "config.toml").read_text())
+        # A run from before an option existed did what the option's default does (options are
+        # added keeping the behaviour they replace), so a missing key reads as today's default.
+        cfg = _DEFAULTS | tomllib.loads((path / "config.toml").read_text())
         with open(path / "progress.csv", newline="") as f:
             all_rows = list(csv.DictReader(f))
     except FileNotFoundError as e:
@@ -74,8 +81,7 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
                     "q_bound_exceeded" in all_rows[0], past[0] if past else None)
 
 
-#: Settings that only some algorithms use: other runs carry their defaults (or, from before
-#: the setting existed, nothing), which say nothing about them.
+#: Settings that only some algorithms use: other runs carry their defaults, which say nothing about them.
 ONLY_FOR = {"expert_admission": {"silcr"}, "expert_init": {"silcr"},
             **{k: {"gasil"} for k in ("gasil_alpha", "gasil_reward", "disc_hidden", "disc_lr", "disc_grad_penalty",
                                       "disc_batch_size", "disc_interval", "disc_warmup", "recent_window")}}

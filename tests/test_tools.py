@@ -126,7 +126,8 @@ def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
 
 
 def test_gasil_settings_label_only_gasil_runs(tmp_path):
-    """A run from before GASIL's options existed, or of another algorithm, is not labelled with them."""
+    """A run of another algorithm is not labelled with GASIL's settings, and a run from before an option
+    existed reads as its default (here tanh_log_prob and GASIL's options, added later)."""
     from silcr.plot import distinguish
 
     dirs = []
@@ -135,7 +136,7 @@ def test_gasil_settings_label_only_gasil_runs(tmp_path):
         d.mkdir()
         cfg = Config(run=d.name, env="Hopper-v5", algo=algo, reward="dense", gasil_alpha=alpha).to_dict()
         if algo == "sac":  # an old run's config.toml: no GASIL keys at all
-            cfg = {k: v for k, v in cfg.items() if not k.startswith(("gasil_", "disc_", "recent_"))}
+            cfg = {k: v for k, v in cfg.items() if not k.startswith(("gasil_", "disc_", "recent_", "tanh_log_prob"))}
         import tomli_w
 
         (d / "config.toml").write_text(tomli_w.dumps(cfg))
