@@ -64,6 +64,10 @@ def _mean_lag(current: int, versions: np.ndarray) -> float | None:
     return float(current - known.mean()) if known.size else None
 
 
+class BufferMismatch(RuntimeError):
+    """The buffer service's batches are not what this learner's --algo needs (it runs another --algo)."""
+
+
 class Learner:
     """SAC plus everything a run keeps around it: counters, weights, evaluations, records, checkpoints."""
 
@@ -201,6 +205,9 @@ class Learner:
         n, size = int(batch.meta["batches"]), int(batch.meta["batch_size"])
         versions = batch.arrays["policy_version"].reshape(n, size)
         online = int(batch.meta.get("online_rows", size))  # rows of each batch from D_O; the rest are D_E's
+        if self.gasil is not None and online < size:
+            raise BufferMismatch("--algo gasil: the buffer service mixes D_E rows with constant rewards into the batches; "
+                               "it runs --algo silcr or sqil (start it with --algo gasil)")
         lag = _mean_lag(self.policy_version, versions[:, :online])
         if lag is not None:
             self.policy_lag.append(lag)
@@ -225,7 +232,7 @@ class Learner:
 
     def train_on(self, arrays: dict[str, np.ndarray], batches: int, batch_size: int) -> None:
         if self.gasil is not None and "disc_expert_obs" not in arrays:
-            raise RuntimeError("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
+            raise BufferMismatch("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
                                "or predates GASIL (start it with --algo gasil)")
         t = batch_tensors(arrays, self.device)
         term = t["terminated"].float()
@@ -320,10 +327,16 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         lrn.start()
         stream.wait_for_buffer()
         finished = False
+        mismatch: BufferMismatch | None = None
         next_stats = time.monotonic()
         for batch in stream:
             if batch is not None:
-                lrn.step(batch)
+                try:
+                    lrn.step(batch)
+                except BufferMismatch as e:
+                    log.error("%s", e)
+                    mismatch = e
+                    break
             else:
                 lrn.see(stream.last_meta)
             lrn.poll()
@@ -343,4 +356,4 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         else:
             log.info("stopping (%s) at %d updates", stop.reason, lrn.updates)
         token.undeclare()
-    return 0
+    return 1 if mismatch else 0

@@ -211,12 +211,14 @@ def test_a_checkpoint_without_a_discriminator_is_refused(tmp_path):
         Learner(Config(**_gasil_cfg(tmp_path).to_dict() | {"resume": True}), EnvSpec.of(ENV), InProcessWeights())
 
 
-def test_a_learner_given_no_discriminator_rows_says_why(tmp_path):
+def test_a_learner_given_the_wrong_batches_says_why(tmp_path):
     cfg = _gasil_cfg(tmp_path, expert_capacity=30)
-    replay = _filled(cfg)
     lrn = Learner(cfg, EnvSpec.of(ENV), InProcessWeights())
     with pytest.raises(RuntimeError, match="no discriminator rows"):
-        lrn.step(replay.sample(P.SampleRequest(1, 8)))
+        lrn.step(_filled(cfg).sample(P.SampleRequest(1, 8)))
+    silcr_buffer = _filled(Config(**cfg.to_dict() | {"algo": "silcr"}))  # serves D_E rows too, but mixed in
+    with pytest.raises(RuntimeError, match="runs --algo silcr or sqil"):
+        lrn.step(silcr_buffer.sample(P.SampleRequest(1, 8, 8, 25)))
 
 
 # -- the whole distributed system -------------------------------------------------
