@@ -49,7 +49,6 @@ class ReplayState:
         self.heap: ExpertHeap | None = None
         # D_E ranks the agent's own episodes (SILCR, GASIL); only SILCR and SQIL mix it into batches.
         self.ranked = cfg.algo in RANKED_ALGOS
-        self.mixed = cfg.constant_rewards
         if self.ranked:
             self.heap = ExpertHeap(cfg.expert_capacity, cfg.expert_admission)
         elif cfg.algo == "sqil":
@@ -169,7 +168,7 @@ class ReplayState:
         if k == 0:
             self.not_ready_replies += 1
             return P.BatchReply("not_ready", self.meta(), reason="rate_limited", retry_after_ms=20)
-        mixed_heap = self.heap if self.mixed else None
+        mixed_heap = self.heap if self.constant_rewards else None
         arrays = compose_batches(
             self.fifo, mixed_heap, k, req.batch_size, self.rng, self.constant_rewards, self.spec.obs_dim, self.spec.act_dim
         )
