@@ -207,7 +207,7 @@ class Learner:
         online = int(batch.meta.get("online_rows", size))  # rows of each batch from D_O; the rest are D_E's
         if self.gasil is not None and online < size:
             raise BufferMismatch("--algo gasil: the buffer service mixes D_E rows with constant rewards into the batches; "
-                               "it runs --algo silcr or sqil (start it with --algo gasil)")
+                                 "it runs --algo silcr or sqil (start it with --algo gasil)")
         lag = _mean_lag(self.policy_version, versions[:, :online])
         if lag is not None:
             self.policy_lag.append(lag)
@@ -233,7 +233,7 @@ class Learner:
     def train_on(self, arrays: dict[str, np.ndarray], batches: int, batch_size: int) -> None:
         if self.gasil is not None and "disc_expert_obs" not in arrays:
             raise BufferMismatch("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
-                               "or predates GASIL (start it with --algo gasil)")
+                                 "or predates GASIL (start it with --algo gasil)")
         t = batch_tensors(arrays, self.device)
         term = t["terminated"].float()
         trunc = t["truncated"].float()
