@@ -71,6 +71,12 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
         values = np.array([float(r[metric]) for r in rows])
     except (KeyError, ValueError) as e:
         raise ValueError(f"{path}: progress.csv lacks env_steps/{metric} numbers ({e})") from None
+    # A resumed run goes on from its last checkpoint, so its rows can step back: the rows
+    # after the checkpoint that the run lost are superseded by the ones written again.
+    # (Equal steps are two evaluations, as the final one after the last scheduled one.)
+    later_min = np.minimum.accumulate(steps[::-1])[::-1]
+    keep = np.append(steps[:-1] <= later_min[1:], True)
+    steps, values = steps[keep], values[keep]
     algo = cfg.get("algo", "?")
     # SILCR and SQIL ignore the env's reward; SAC's and GASIL's labels say which one they had.
     label = f"{algo}-{cfg.get('reward', '')}" if algo in ("sac", "gasil") else algo
@@ -96,7 +102,7 @@ def distinguish(runs: list[RunCurve]) -> list[RunCurve]:
     keys = sorted({k for r in runs for k in r.config} - NOT_A_SETTING)
     differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs if _applies(k, r)}) > 1]
     for r in runs:
-        extra = " ".join(f"{k}={r.config.get(k)}" for k in differing if _applies(k, r))
+        extra = " ".join(f"{k}={r.config.get(k) if r.config.get(k) != '' else 'none'}" for k in differing if _applies(k, r))
         r.algo = f"{r.algo} {extra}" if extra else r.algo
     return runs
 

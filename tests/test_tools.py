@@ -171,3 +171,12 @@ def test_plot_keeps_runs_of_different_settings_apart_and_plots_other_columns(tmp
     r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "--metric", "q_max", "-o",
                         str(tmp_path / "q.png")], capture_output=True, text=True, cwd=REPO, timeout=60)
     assert r.returncode == 2 and "no values of q_max" in r.stderr and "Traceback" not in r.stderr
+
+
+def test_a_resumed_run_plots_the_rows_written_after_the_resume(tmp_path):
+    """Rows to 3,000 steps were written, then the run resumed from a checkpoint taken at about 2,200 steps;
+    the final evaluation shares the last scheduled one's step count and is kept."""
+    d = _fake_run(tmp_path, "Hopper-v5", "silcr", 0, [0, 1000, 2000, 3000, 2500, 3000, 4000, 4000],
+                  [1, 2, 3, 99, 4, 5, 6, 7])
+    run = load_run(d)
+    assert list(run.steps) == [0, 1000, 2000, 2500, 3000, 4000, 4000] and list(run.returns) == [1, 2, 3, 4, 5, 6, 7]
