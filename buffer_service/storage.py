@@ -123,15 +123,27 @@ class EpisodeIndex:
         self._free = list(range(2 * n - 1, n - 1, -1))
         self._cum = None
 
+    def _draw(self, n: int, rng: np.random.Generator,
+              slots: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(slot, step in the episode, row) of `n` transitions drawn uniformly (with replacement)
+        over the episodes in `slots` (default: every stored one)."""
+        if slots is None:
+            if self._cum is None:
+                self._cum = np.cumsum(self.length)
+            cum, high = self._cum, self.transitions
+        else:
+            cum = np.cumsum(self.length[slots])
+            high = int(cum[-1])
+        g = rng.integers(0, high, size=n)
+        i = np.searchsorted(cum, g, side="right")
+        slot = i if slots is None else slots[i]
+        t = g - (cum[i] - self.length[slot])
+        return slot, t, self.row[slot] + t
+
     def gather(self, storage: RowStorage, n: int, rng: np.random.Generator, out: dict[str, np.ndarray],
                rows: slice | np.ndarray, rewards: bool) -> None:
         """Draw `n` transitions uniformly (with replacement) into `out[...][rows]`."""
-        if self._cum is None:
-            self._cum = np.cumsum(self.length)
-        g = rng.integers(0, self.transitions, size=n)
-        slot = np.searchsorted(self._cum, g, side="right")
-        t = g - (self._cum[slot] - self.length[slot])
-        r = self.row[slot] + t
+        slot, t, r = self._draw(n, rng)
         out["obs"][rows] = storage.obs[r]
         out["next_obs"][rows] = storage.obs[r + 1]
         out["actions"][rows] = storage.actions[r]
@@ -147,14 +159,5 @@ class EpisodeIndex:
     def gather_state_actions(self, storage: RowStorage, n: int, rng: np.random.Generator,
                              slots: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """`n` (state, action) pairs drawn uniformly over the transitions of `slots` (default: all)."""
-        if slots is None:
-            if self._cum is None:
-                self._cum = np.cumsum(self.length)
-            cum, lengths, first = self._cum, self.length, self.row
-        else:
-            lengths, first = self.length[slots], self.row[slots]
-            cum = np.cumsum(lengths)
-        g = rng.integers(0, int(cum[-1]), size=n)
-        i = np.searchsorted(cum, g, side="right")
-        r = first[i] + g - (cum[i] - lengths[i])
+        r = self._draw(n, rng, slots)[2]
         return storage.obs[r], storage.actions[r]

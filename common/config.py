@@ -23,6 +23,7 @@ from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
 
 ALGOS = ("silcr", "sac", "sqil", "gasil")
 RANKED_ALGOS = ("silcr", "gasil")  # D_E ranks the agent's own episodes by return
+ENV_REWARD_ALGOS = ("sac", "gasil")  # learn from the env's reward (--reward); SILCR and SQIL ignore it
 GASIL_REWARD_FORMS = ("logit", "positive", "negative")  # r_D from the discriminator (learner.gasil)
 EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.expert_heap)
 TANH_LOG_PROB_FORMS = ("exact", "official")  # log(1 - tanh^2) in the policy's log-probability (learner.sac)
@@ -132,7 +133,7 @@ class Config:
 
     @property
     def actor_reward(self) -> str:
-        return self.reward if self.algo in ("sac", "gasil") else "episodic"  # SILCR and SQIL ignore env rewards
+        return self.reward if self.algo in ENV_REWARD_ALGOS else "episodic"
 
     @property
     def constant_rewards(self) -> bool:
@@ -326,7 +327,7 @@ def validate(cfg: Config, role: str) -> None:
             raise ConfigError("--expert-init", f"no such file: {cfg.expert_init}")
         if cfg.expert_admission != "return" and cfg.algo != "silcr":
             raise ConfigError("--expert-admission", f"only --algo silcr fills D_E from its own episodes (got --algo {cfg.algo})")
-    if cfg.env in EPISODIC_IDS and cfg.algo in ("sac", "gasil") and cfg.reward == "dense":
+    if cfg.env in EPISODIC_IDS and cfg.algo in ENV_REWARD_ALGOS and cfg.reward == "dense":
         raise ConfigError("--reward", f"{cfg.env} is {EPISODIC_IDS[cfg.env]} with the episodic reward; for the dense "
                                       f"reward use --env {EPISODIC_IDS[cfg.env]}")
     if cfg.learning_starts >= cfg.online_capacity:

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.common.config import Config
+from silcr.common.config import ENV_REWARD_ALGOS, Config
 
 
 @dataclass
@@ -79,7 +79,7 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     steps, values = steps[keep], values[keep]
     algo = cfg.get("algo", "?")
     # SILCR and SQIL ignore the env's reward; SAC's and GASIL's labels say which one they had.
-    label = f"{algo}-{cfg.get('reward', '')}" if algo in ("sac", "gasil") else algo
+    label = f"{algo}-{cfg.get('reward', '')}" if algo in ENV_REWARD_ALGOS else algo
     if algo in ("silcr", "gasil") and cfg.get("expert_capacity", 50_000) != 50_000:
         label += f" (M={cfg['expert_capacity']:.0e})".replace("e+0", "e")  # the M ablation: one curve per M
     past = [float(r["env_steps"]) for r in all_rows if (r.get("q_bound_exceeded") or "0") not in ("", "0")]
