@@ -12,6 +12,9 @@ An experiment is a TOML file (see `experiments/`):
     [variants.sqil]
     algo = "sqil"
     demos = "demos/{task}.npz"          # {task} is replaced by the cell's task
+    [variants.sac-dense]
+    algo = "sac"
+    seeds = "0"                         # a reference: this variant runs only these of the selected seeds
 
 Each cell is one `silcr train` run named `<variant>_<task>_s<seed>` in the sweep's
 runs directory. A cell is *done* once its run exited cleanly (marker file
@@ -99,6 +102,9 @@ def load_experiment(path: Path) -> dict[str, Any]:
             raise ExperimentError(f"{path}: [{scope}] must be a table of silcr train options")
         for key in table:
             k = key.replace("-", "_")
+            if k == "seeds" and scope != "common":
+                parse_seeds(table[key])  # a variant's own seeds: checked here, applied in cells_of
+                continue
             if k in _SWEEP_OWNED:
                 raise ExperimentError(f"{path}: [{scope}] may not set {key!r}; the sweep sets it per cell")
             if k not in FIELDS or "train" not in FIELDS[k].metadata["roles"]:
@@ -108,13 +114,18 @@ def load_experiment(path: Path) -> dict[str, Any]:
 
 
 def cells_of(exp: dict[str, Any], seeds: list[int]) -> list[Cell]:
+    """Every cell, task by task in the file's order. A variant with its own `seeds` runs only
+    those of `seeds` (a one-seed reference beside 3-seed cells, for example)."""
     common = {k.replace("-", "_"): v for k, v in exp.get("common", {}).items()}
     out = []
     for task in exp["tasks"]:
         for variant, table in exp["variants"].items():
+            table = dict(table)
+            own = table.pop("seeds", None)
             opts = common | {k.replace("-", "_"): v for k, v in table.items()} | {"env": task}
             opts = {k: (v.replace("{task}", task) if isinstance(v, str) else v) for k, v in opts.items()}
-            out.extend(Cell(variant, task, s, opts) for s in seeds)
+            chosen = seeds if own is None else [s for s in seeds if s in set(parse_seeds(own))]
+            out.extend(Cell(variant, task, s, opts) for s in chosen)
     return out
 
 
@@ -157,9 +168,11 @@ class _Running:
 
 
 def selected_cells(exp: dict[str, Any], seeds: list[int], only: str, shard: tuple[int, int]) -> list[Cell]:
-    """The cells this invocation runs: those whose name contains `only`, then every N-th from K."""
+    """The cells this invocation runs: those whose name contains `only` (or any of its
+    comma-separated parts), then every N-th from K."""
     k, n = shard
-    cells = [c for c in cells_of(exp, seeds) if only in c.name]
+    parts = [p for p in only.split(",") if p] or [""]
+    cells = [c for c in cells_of(exp, seeds) if any(p in c.name for p in parts)]
     return [c for i, c in enumerate(cells) if i % n == k - 1]
 
 

@@ -74,7 +74,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--runs-dir", default="", help="where the cells' run directories go (default: the file's runs_dir, else runs/<experiment>)")
             p.add_argument("--parallel", type=int, default=1, help="cells run at once (default: 1)")
             p.add_argument("--shard", default="1/1", help="K/N: run only the K-th of N shares of the cells, to spread a sweep over N machines (default: 1/1)")
-            p.add_argument("--only", default="", help="run only cells whose name contains this text")
+            p.add_argument("--only", default="", help="run only cells whose name contains this text (or any of several, comma-separated: silcr_,sac-)")
             p.add_argument("--dry-run", action="store_true", help="list the cells and their state, run nothing")
             p.add_argument("--resume", action="store_true", help="continue cells that were stopped midway from their "
                            "checkpoints (without it, such cells stop the sweep before anything starts)")

@@ -10,7 +10,7 @@ import sys
 
 import pytest
 
-from silcr.deploy.sweep import ExperimentError, cell_state, cells_of, load_experiment, parse_seeds
+from silcr.deploy.sweep import ExperimentError, cell_state, cells_of, load_experiment, parse_seeds, selected_cells
 from silcr.learner.checkpoint import load_checkpoint
 from tests.helpers import REPO, Processes, free_port, wait_for
 
@@ -29,9 +29,27 @@ def test_seed_ranges():
 @pytest.mark.parametrize("path", EXPERIMENTS, ids=[p.stem for p in EXPERIMENTS])
 def test_shipped_experiments_are_valid(path):
     exp = load_experiment(path)
-    cells = cells_of(exp, parse_seeds(exp["seeds"]))
-    assert len(cells) == len(exp["tasks"]) * len(exp["variants"]) * len(parse_seeds(exp["seeds"]))
+    seeds = parse_seeds(exp["seeds"])
+    cells = cells_of(exp, seeds)
+    per_task = sum(len(set(seeds) & set(parse_seeds(v.get("seeds", exp["seeds"])))) for v in exp["variants"].values())
+    assert len(cells) == len(exp["tasks"]) * per_task
     assert len({c.name for c in cells}) == len(cells)
+
+
+def test_a_variant_runs_only_its_own_seeds_and_only_takes_several_texts(tmp_path):
+    path = tmp_path / "x.toml"
+    path.write_text('tasks = ["Hopper-v5", "Swimmer-v5"]\nseeds = "0-2"\n[variants.silcr]\nalgo = "silcr"\n'
+                    '[variants.sac-dense]\nalgo = "sac"\nreward = "dense"\nseeds = "0,5"\n')
+    exp = load_experiment(path)
+    names = [c.name for c in cells_of(exp, [0, 1, 2])]
+    assert names == ["silcr_Hopper-v5_s0", "silcr_Hopper-v5_s1", "silcr_Hopper-v5_s2", "sac-dense_Hopper-v5_s0",
+                     "silcr_Swimmer-v5_s0", "silcr_Swimmer-v5_s1", "silcr_Swimmer-v5_s2", "sac-dense_Swimmer-v5_s0"]
+    assert all("seeds" not in c.options for c in cells_of(exp, [0]))  # not passed on to silcr train
+    assert [c.name for c in selected_cells(exp, [0, 1], "sac-,silcr_Swim", (1, 1))] == [
+        "sac-dense_Hopper-v5_s0", "silcr_Swimmer-v5_s0", "silcr_Swimmer-v5_s1", "sac-dense_Swimmer-v5_s0"]
+    path.write_text('tasks = ["Hopper-v5"]\n[variants.a]\nseeds = "2-1"\n')
+    with pytest.raises(ExperimentError, match="seeds '2-1'"):
+        load_experiment(path)
 
 
 def test_paper_experiments_cover_the_papers_grid():
