@@ -5,12 +5,12 @@ from __future__ import annotations
 
 import csv
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
 from typing import Any
 
+from silcr.cli import command
 from silcr.common import protocol as P
 
 from silcr.deploy.monitor import StatsSnapshot
@@ -27,9 +27,9 @@ def run(out_dir: Path, quick: bool = False, env_id: str = "Hopper-v5", actors: i
     port = free_port()
     runs_dir = tempfile.mkdtemp(prefix="silcr-bench-e2e-")
     proc = subprocess.Popen(
-        [sys.executable, "-m", "silcr.cli", "train", "--run", run_name, "--runs-dir", runs_dir, "--env", env_id,
-         "--actors", str(actors), "--learning-starts", str(warmup), "--total-steps", str(warmup + updates),
-         "--eval-episodes", "0", "--stats-interval", "0.5", "--zenoh-listen", f"tcp/127.0.0.1:{port}"],
+        command("train", "--run", run_name, "--runs-dir", runs_dir, "--env", env_id, "--actors", str(actors),
+                "--learning-starts", str(warmup), "--total-steps", str(warmup + updates), "--eval-episodes", "0",
+                "--stats-interval", "0.5", "--zenoh-listen", f"tcp/127.0.0.1:{port}"),
         stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT,
     )
     comp = Components()
@@ -72,9 +72,9 @@ def _single_process_rate(env_id: str, actors: int, warmup: int, updates: int) ->
     """Updates per second of the same budget in one process (both cores for torch), warm-up included as above."""
     runs_dir = Path(tempfile.mkdtemp(prefix="silcr-bench-single-"))
     subprocess.run(
-        [sys.executable, "-m", "silcr.cli", "train", "--single-process", "--run", "single", "--runs-dir", str(runs_dir),
-         "--env", env_id, "--actors", str(actors), "--learning-starts", str(warmup), "--total-steps",
-         str(warmup + updates), "--eval-episodes", "1", "--eval-interval", str(10 * (warmup + updates))],
+        command("train", "--single-process", "--run", "single", "--runs-dir", str(runs_dir), "--env", env_id,
+                "--actors", str(actors), "--learning-starts", str(warmup), "--total-steps", str(warmup + updates),
+                "--eval-episodes", "1", "--eval-interval", str(10 * (warmup + updates))),
         stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, check=True, timeout=3600,
     )
     last = list(csv.DictReader(open(runs_dir / "single" / "progress.csv")))[-1]

@@ -5,7 +5,6 @@ from __future__ import annotations
 import signal
 import socket
 import subprocess
-import sys
 import tempfile
 import time
 from pathlib import Path
@@ -13,6 +12,7 @@ from typing import Any, Callable
 
 import zenoh
 
+from silcr.cli import command
 from silcr.common.zenoh_session import open_session, session_config
 
 
@@ -32,7 +32,7 @@ class Components:
     def start(self, *args: str) -> subprocess.Popen:
         log = open(self.dir / f"{len(self.procs)}-{args[0]}.log", "w")
         extra = ["--listen", self.endpoint] if args[0] == "router" else ["--connect", self.endpoint]
-        p = subprocess.Popen([sys.executable, "-m", "silcr.cli", *args, *extra], stdout=log, stderr=subprocess.STDOUT)
+        p = subprocess.Popen(command(*args, *extra), stdout=log, stderr=subprocess.STDOUT)
         self.procs.append(p)
         return p
 

@@ -138,8 +138,10 @@ def cell_state(run_dir: Path) -> str:
 
 
 def _command(cell: Cell, runs_dir: Path, port: int, resume: bool) -> list[str]:
-    cmd = [sys.executable, "-m", "silcr.cli", "train", "--run", cell.name, "--runs-dir", str(runs_dir),
-           "--seed", str(cell.seed), "--zenoh-listen", f"tcp/127.0.0.1:{port}"]
+    from silcr.cli import command
+
+    cmd = command("train", "--run", cell.name, "--runs-dir", str(runs_dir), "--seed", str(cell.seed),
+                  "--zenoh-listen", f"tcp/127.0.0.1:{port}")
     for k, v in sorted(cell.options.items()):
         flag = option_name(k)
         if isinstance(v, bool):
@@ -275,13 +277,13 @@ def run_sweep_cli(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
         parser.error(f"--shard {args.shard!r}: use K/N with 1 <= K <= N, e.g. 2/3")
     runs_dir = Path(args.runs_dir or exp.get("runs_dir") or Path("runs") / exp["name"])
     # Check every selected cell's options the way `silcr train` would, before starting any.
-    from silcr.cli import build_parser
+    from silcr.cli import build_parser, command
     from silcr.common.config import resolve
 
     train = build_parser()[1]["train"]
     problems: dict[str, list[str]] = {}  # one line per distinct problem, naming the cells it affects
     for cell in selected_cells(exp, seeds, args.only, (k, n)):
-        cmd = _command(cell, runs_dir, args.port_base, False)[3:]  # drop "python -m silcr.cli"
+        cmd = _command(cell, runs_dir, args.port_base, False)[len(command()):]  # the arguments after `silcr`
         try:
             with contextlib.redirect_stderr(io.StringIO()):  # argparse's own usage text; we report below
                 resolve(train.parse_args(cmd[1:]), "train")

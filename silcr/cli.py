@@ -132,6 +132,15 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
         raise ConfigError("--connect/--listen/--zenoh-config", str(e)) from None
 
 
+def command(*args: str) -> list[str]:
+    """The command line that runs `silcr ARGS` in a child process with this interpreter.
+
+    Not `python -m silcr.cli`: that puts the working directory first on sys.path, and from a
+    source checkout with a non-editable install it finds the checkout's `silcr/` folder (the
+    CLI alone, without silcr.common) instead of the installed package."""
+    return [sys.executable, "-c", "import sys; sys.path.pop(0); from silcr.cli import main; sys.exit(main())", *args]
+
+
 def main(argv: list[str] | None = None) -> int:
     parser, subs = build_parser()
     args = parser.parse_args(argv)

@@ -70,6 +70,11 @@ def installed(tmp_path_factory):
     (work / "common").mkdir(parents=True)
     (work / "common" / "__init__.py").write_text("raise ImportError('this is the other project\\'s common')\n")
     (work / "common" / "cli.py").write_text("raise SystemExit('the other project\\'s common.cli ran')\n")
+    # ... and a `silcr/` folder holding the CLI alone, as a source checkout does: `silcr sweep`
+    # started its cells with `python -m silcr.cli`, which found this folder instead of the package.
+    (work / "silcr").mkdir()
+    (work / "silcr" / "__init__.py").write_text("")
+    (work / "silcr" / "cli.py").write_text("raise SystemExit('the checkout\\'s silcr/cli.py ran')\n")
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env["PATH"] = f"{bin_dir}{os.pathsep}{env.get('PATH', '')}"
     return {"added": added, "target": target, "bin": bin_dir, "work": work, "env": env}
@@ -89,8 +94,11 @@ def test_the_installed_silcr_runs_beside_another_projects_common(installed, tmp_
                                        cwd=installed["work"], env=installed["env"], timeout=300)
     r = run("sweep", str(REPO / "experiments" / "hopper-30k.toml"), "--dry-run", "--runs-dir", str(tmp_path / "sweep"))
     assert r.returncode == 0 and "9 cells" in r.stdout, r.stdout + r.stderr
-    r = run("train", "--env", "InvertedPendulum-v5", "--hidden", "16", "16", "--learning-starts", "200",
-            "--total-steps", "1200", "--eval-interval", "600", "--eval-episodes", "1", "--runs-dir", str(tmp_path),
-            "--run", "installed", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}")
-    assert r.returncode == 0, r.stdout + r.stderr
-    assert (tmp_path / "installed" / "progress.csv").read_text().count("\n") >= 3
+    # A one-cell sweep: its cell is a child `silcr train` started from the working directory.
+    exp = tmp_path / "tiny.toml"
+    exp.write_text('tasks = ["InvertedPendulum-v5"]\nseeds = "0"\n[common]\nhidden = [16, 16]\nlearning_starts = 200\n'
+                   'total_steps = 1200\neval_interval = 600\neval_episodes = 1\n[variants.installed]\nalgo = "silcr"\n')
+    r = run("sweep", str(exp), "--runs-dir", str(tmp_path / "tiny"), "--port-base", str(free_port()))
+    cell = tmp_path / "tiny" / "installed_InvertedPendulum-v5_s0"
+    assert r.returncode == 0, r.stdout + r.stderr + (cell / "sweep.log").read_text()
+    assert (cell / "progress.csv").read_text().count("\n") >= 3
