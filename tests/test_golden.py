@@ -1,0 +1,65 @@
+"""Golden progress.csv files: a short `--single-process` run per algorithm gives today the numbers it gave when
+the file was recorded, to the last digit, outside the wall-clock columns.
+
+They guard against refactors that change results by accident: the runs of a study made before a
+refactor stay comparable with those made after it only if this passes. A change that is meant to
+change results regenerates them on purpose, and says so in its commit:
+
+    SILCR_REGENERATE_GOLDEN=1 python -m pytest -q tests/test_golden.py
+
+Columns added after a file was recorded are not compared (a new column is not a changed result).
+"""
+
+from __future__ import annotations
+
+import csv
+import os
+import shutil
+import subprocess
+
+import pytest
+
+from silcr.cli import command
+from tests.helpers import REPO
+
+GOLDEN = REPO / "tests" / "golden"
+WALL_CLOCK_COLUMNS = {"time", "updates_per_s"}
+ENV = "InvertedPendulum-v5"
+# Small, but every part runs: two actors with two envs each, D_E full and turning over,
+# several weights versions, evaluations and checkpoints.
+COMMON = ["--env", ENV, "--hidden", "16", "16", "--learning-starts", "400", "--total-steps", "1600",
+          "--eval-interval", "400", "--eval-episodes", "2", "--actors", "2", "--envs-per-actor", "2",
+          "--weights-interval", "25", "--checkpoint-interval", "300", "--expert-capacity", "1000",
+          "--batch-size", "64", "--seed", "7", "--torch-threads", "1"]
+DEMOS = GOLDEN / f"demos-{ENV}.npz"  # 8 episodes of an untrained policy (tests/golden/README.md)
+CASES = {
+    "silcr": ["--algo", "silcr"],
+    "silcr-recent": ["--algo", "silcr", "--expert-admission", "recent"],
+    "sac-dense": ["--algo", "sac", "--reward", "dense"],
+    "sac-episodic": ["--algo", "sac", "--reward", "episodic"],
+    "sqil": ["--algo", "sqil", "--demos", str(DEMOS)],
+    "gasil-dense": ["--algo", "gasil", "--reward", "dense", "--disc-batch-size", "32", "--recent-window", "400"],
+}
+
+
+def _rows(path) -> list[dict[str, str]]:
+    with open(path, newline="") as f:
+        return list(csv.DictReader(f))
+
+
+@pytest.mark.parametrize("case", sorted(CASES))
+def test_a_short_run_gives_its_golden_progress_csv(tmp_path, case):
+    r = subprocess.run(command("train", "--single-process", "--run", case, "--runs-dir", str(tmp_path), *COMMON,
+                               *CASES[case]), capture_output=True, text=True, cwd=REPO, timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    got = _rows(tmp_path / case / "progress.csv")
+    golden = GOLDEN / f"{case}.csv"
+    if os.environ.get("SILCR_REGENERATE_GOLDEN") == "1":
+        shutil.copy(tmp_path / case / "progress.csv", golden)
+        pytest.skip(f"regenerated {golden.relative_to(REPO)}")
+    want = _rows(golden)
+    assert len(got) == len(want) >= 5
+    assert int(got[-1]["updates"]) >= 1100  # it did train
+    for i, (g, w) in enumerate(zip(got, want)):
+        diff = {k: (w[k], g.get(k)) for k in w if k not in WALL_CLOCK_COLUMNS and g.get(k) != w[k]}
+        assert not diff, f"{case}: row {i} differs from {golden.relative_to(REPO)} (golden, now): {diff}"
