@@ -16,12 +16,12 @@ import time
 import numpy as np
 
 from silcr.common import protocol as P
-from silcr.common.clients import (EpisodeWriter, StatsPublisher, WeightsClient, ZenohEpisodeWriter,
-                                  ZenohWeightsClient, stop_on_shutdown)
+from silcr.common import seeds
+from silcr.common.clients import EpisodeWriter, WeightsClient, ZenohEpisodeWriter, ZenohWeightsClient
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec, make_env
 from silcr.common.lifecycle import StopFlag
-from silcr.common.zenoh_session import open_session, session_config
+from silcr.common.role_session import role_session
 
 from .policy import NumpyPolicy, initial_weights
 
@@ -54,7 +54,7 @@ class Actor:
     def __init__(self, cfg: Config, spec: EnvSpec, actor_id: int, writer: EpisodeWriter,
                  weights: WeightsClient[NumpyPolicy]) -> None:
         self.actor_id = actor_id
-        self.seed = cfg.seed + actor_id
+        self.seed = seeds.actor(cfg.seed, actor_id)
         self.spec = spec
         self.writer = writer
         self.weights = weights
@@ -63,7 +63,7 @@ class Actor:
         self.envs = [make_env(cfg.env, cfg.actor_reward) for _ in range(cfg.envs_per_actor)]
         self.rollouts = []
         for j, env in enumerate(self.envs):
-            obs, _ = env.reset(seed=self.seed + 10_000 * j)
+            obs, _ = env.reset(seed=seeds.actor_env(self.seed, j))
             self.rollouts.append(_Rollout(np.asarray(obs, np.float32), weights.version))
         self.episodes = self.steps = self.seq = 0
         self.last_return: float | None = None
@@ -103,23 +103,16 @@ class Actor:
 
 
 def run_actor(cfg: Config, stop: StopFlag) -> int:
-    spec = EnvSpec.of(cfg.env)
-    keys = P.Keys(cfg.run)
-    seed = cfg.seed + cfg.actor_id
-    conf = session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
-    with open_session(conf) as session:
-        stop_on_shutdown(session, keys, stop)
-        stats_pub = StatsPublisher(session, keys.stats_actor(cfg.actor_id))
-        token = session.liveliness().declare_token(keys.alive("actor", cfg.actor_id))
-        writer = ZenohEpisodeWriter(session, keys, stop)
-        weights = ZenohWeightsClient(session, keys, policy_factory(spec), random_initial_weights(cfg, spec, seed),
-                                     cfg.weights_wait, stop)
-        actor = Actor(cfg, spec, cfg.actor_id, writer, weights)
+    seed = seeds.actor(cfg.seed, cfg.actor_id)
+    with role_session(cfg, stop, "actor", cfg.actor_id) as role:
+        writer = ZenohEpisodeWriter(role.session, role.keys, stop)
+        weights = ZenohWeightsClient(role.session, role.keys, policy_factory(role.spec),
+                                     random_initial_weights(cfg, role.spec, seed), cfg.weights_wait, stop)
+        actor = Actor(cfg, role.spec, cfg.actor_id, writer, weights)
         log.info("actor %d on %s with %d env(s), seed %d, policy version %d", cfg.actor_id, cfg.env, len(actor.envs),
                  seed, weights.version)
         paused_s = 0.0
         last_poll = 0
-        next_stats = time.monotonic()
         while not stop.is_set():
             paused = writer.paused()
             if paused:
@@ -132,11 +125,8 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
                 # Paused actors keep polling, so they resume with the newest policy.
                 last_poll = actor.steps
                 weights.update()
-            now = time.monotonic()
-            if now >= next_stats:
-                stats_pub.put({"time": time.time(), "paused": paused, "paused_s": paused_s} | actor.stats())
-                next_stats = now + cfg.stats_interval
-        token.undeclare()
+            if role.stats_due.due():
+                role.stats.put({"time": time.time(), "paused": paused, "paused_s": paused_s} | actor.stats())
         log.info("actor %d stopping (%s): %d episodes, %d steps", cfg.actor_id, stop.reason, actor.episodes, actor.steps)
     actor.close()
     return 0

@@ -17,7 +17,7 @@ import torch
 import zenoh
 
 from silcr.buffer_service.batches import compose_batches
-from silcr.buffer_service.service import ReplayState
+from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
 from silcr.common.clients import ZenohBatchStream
 from silcr.common.lifecycle import StopFlag
@@ -43,7 +43,7 @@ def _episodes(spec: EnvSpec, n: int, length: int, seed: int = 0) -> list[bytes]:
         ep = P.Episode(0, i, 0, float(rewards.sum(dtype=np.float64)), False, True,
                        g.normal(size=(length + 1, spec.obs_dim)).astype(np.float32),
                        g.uniform(-1, 1, (length, spec.act_dim)).astype(np.float32), rewards)
-        out.append(P.EpisodeCodec.encode(ep))
+        out.append(ep.encode())
     return out
 
 
@@ -99,7 +99,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
         req = P.SampleRequest(1, 128).encode()
         batches = rate(lambda: state.answer(req).encode(), 50 if quick else 300)
         # The gather alone at 32 batches per request: what a GPU learner's data path could draw.
-        gather = 32 * rate(lambda: compose_batches(state.fifo, state.heap, 32, 128, state.rng, True, spec.obs_dim,
+        gather = 32 * rate(lambda: compose_batches(state.fifo, state.heap, 32, 128, state.rng, state.labeller, spec.obs_dim,
                                                    spec.act_dim), 10 if quick else 50)
         # over Zenoh, buffer in its own process
         zinserts, zbatches = _over_zenoh(env_id, payloads, quick)

@@ -1,8 +1,8 @@
-"""Mixed-batch composition: the SILCR sampling rule (paper eq. 3 and Algorithm 1).
+"""Batch composition: the SILCR sampling rule (paper eq. 3 and Algorithm 1), labelled per algorithm.
 
-SILCR: each batch is half D_O transitions with reward 0 and half D_E transitions
-with reward 1 (`expert` first half rounded down, as the official 64 + 64).
-SAC and GASIL: the whole batch from D_O with the rewards the env gave (dense or episodic).
+Mixing algorithms (SILCR, SQIL): each batch is half D_O transitions and half D_E
+transitions (`expert` half rounded down, as the official 64 + 64). The others (SAC,
+GASIL): the whole batch from D_O. The labeller (`labels.py`) then writes the rewards.
 GASIL's discriminator rows (`discriminator_rows`): D_E transitions and the newest D_O ones.
 """
 
@@ -10,7 +10,10 @@ from __future__ import annotations
 
 import numpy as np
 
+from silcr.common.protocol import Batch, DiscriminatorRows
+
 from .expert_heap import ExpertHeap
+from .labels import Labeller
 from .online_fifo import OnlineFifo
 
 
@@ -19,53 +22,33 @@ def online_rows(batch_size: int, mixed: bool) -> int:
     return batch_size - (batch_size // 2 if mixed else 0)
 
 
-def compose_batches(
-    fifo: OnlineFifo,
-    heap: ExpertHeap | None,
-    batches: int,
-    batch_size: int,
-    rng: np.random.Generator,
-    constant_rewards: bool,
-    obs_dim: int,
-    act_dim: int,
-) -> dict[str, np.ndarray]:
-    """`batches` consecutive batches of `batch_size` rows; see the module docstring for the rule.
+def compose_batches(fifo: OnlineFifo, heap: ExpertHeap | None, batches: int, batch_size: int, rng: np.random.Generator,
+                    labeller: Labeller, obs_dim: int, act_dim: int) -> Batch[np.ndarray]:
+    """`batches` consecutive batches of `batch_size` rows; with `heap`, half of each from it (see above).
 
-    With `heap=None` (plain SAC) every row comes from `fifo`.
+    With `heap=None` every row comes from `fifo`.
     """
     n = batches * batch_size
-    out = {
-        "obs": np.empty((n, obs_dim), np.float32),
-        "next_obs": np.empty((n, obs_dim), np.float32),
-        "actions": np.empty((n, act_dim), np.float32),
-        "rewards": np.empty(n, np.float32),
-        "terminated": np.empty(n, np.uint8),
-        "truncated": np.empty(n, np.uint8),
-        "policy_version": np.empty(n, np.int64),
-    }
+    out = Batch.empty(n, obs_dim, act_dim)
     n_online = online_rows(batch_size, heap is not None)
-    n_expert = batch_size - n_online
-    if n_expert == 0:
-        fifo.gather(n, rng, out, slice(0, n), not constant_rewards)
+    copy_rewards = labeller.copies_env_rewards
+    if n_online == batch_size:
+        online, expert = fifo.gather(n, rng, out, slice(0, n), copy_rewards), None
     else:
         # One draw per table for all the batches: batch b's rows are [b * batch_size, ...),
         # online first. Per-call overhead, not row copies, dominates at batch 128.
-        position = np.arange(n).reshape(batches, batch_size)
-        fifo.gather(batches * n_online, rng, out, position[:, :n_online].ravel(), not constant_rewards)
         assert heap is not None
-        heap.gather(batches * n_expert, rng, out, position[:, n_online:].ravel(), not constant_rewards)
-    if constant_rewards:
-        rewards = out["rewards"].reshape(batches, batch_size)
-        rewards[:, :n_online] = 0.0
-        rewards[:, n_online:] = 1.0
+        position = np.arange(n).reshape(batches, batch_size)
+        online = fifo.gather(batches * n_online, rng, out, position[:, :n_online].ravel(), copy_rewards)
+        expert = heap.gather(batches * (batch_size - n_online), rng, out, position[:, n_online:].ravel(), copy_rewards)
+    labeller.label(out.rewards.reshape(batches, batch_size), online, expert)
     return out
 
 
 def discriminator_rows(fifo: OnlineFifo, heap: ExpertHeap, n: int, recent_window: int,
-                       rng: np.random.Generator) -> dict[str, np.ndarray]:
+                       rng: np.random.Generator) -> DiscriminatorRows[np.ndarray]:
     """GASIL's discriminator data: `n` (s, a) pairs from D_E (label 1) and `n` from the newest
     `recent_window` transitions of D_O (label 0: what the current policy does)."""
-    expert_obs, expert_actions = heap.index.gather_state_actions(heap.storage, n, rng)
+    expert_obs, expert_actions = heap.gather_state_actions(n, rng)
     recent_obs, recent_actions = fifo.gather_recent(n, recent_window, rng)
-    return {"disc_expert_obs": expert_obs, "disc_expert_actions": expert_actions,
-            "disc_recent_obs": recent_obs, "disc_recent_actions": recent_actions}
+    return DiscriminatorRows(expert_obs, expert_actions, recent_obs, recent_actions)

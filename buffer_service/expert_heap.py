@@ -32,13 +32,20 @@ import itertools
 import numpy as np
 
 from silcr.common.config import EXPERT_ADMISSIONS
-from silcr.common.protocol import Episode
+from silcr.common.protocol import Batch, Episode
 
-from .storage import EpisodeIndex, RowStorage, detach
+from .storage import Drawn, EpisodeIndex, RowStorage, Watcher, detach
+
+
+class AdmissionMismatch(ValueError):
+    """A saved D_E kept by another rule than this one's."""
 
 
 class ExpertHeap:
-    def __init__(self, capacity: int, admission: str = "return") -> None:
+    """D_E: at most `capacity` transitions of whole episodes, admitted by the rule above. `watcher`
+    is told of every episode that enters or leaves."""
+
+    def __init__(self, capacity: int, admission: str = "return", watcher: Watcher | None = None) -> None:
         if capacity <= 0:
             raise ValueError(f"expert capacity must be positive, got {capacity}")
         if admission not in EXPERT_ADMISSIONS:
@@ -57,6 +64,7 @@ class ExpertHeap:
         self.rejected = 0
         self.evicted = 0
         self._return_range: tuple[float, float] | None = None  # (min, max) of stored returns, cached
+        self._watcher = watcher
 
     def __len__(self) -> int:
         return self._transitions
@@ -132,6 +140,8 @@ class ExpertHeap:
             self.storage.view(self._end, stored)
         self._where[id(stored)] = (self.index.add(self._end, stored), stored)
         self._end += rows
+        if self._watcher is not None:
+            self._watcher.entered(stored)
         return stored
 
     def _release(self, ep: Episode) -> None:
@@ -139,6 +149,8 @@ class ExpertHeap:
         self.index.remove(slot)
         with self.storage.lock:
             detach(ep)  # its rows will be reused by the next compaction
+        if self._watcher is not None:
+            self._watcher.left(ep)
 
     def _compact(self) -> None:
         """Move the stored episodes to the front, in row order, so the free rows are at the end."""
@@ -159,10 +171,6 @@ class ExpertHeap:
     def episodes(self) -> list[Episode]:
         return [e[2] for e in self._heap]
 
-    def entries(self) -> list[tuple[float, int, Episode]]:
-        """(key, admission order, episode) of every stored episode."""
-        return list(self._heap)
-
     def state(self) -> dict:
         """What a checkpoint keeps: every entry with its key and admission order (the eviction order), and the counters."""
         return {"admission": self.admission, "entries": [[ep, key, order] for key, order, ep in self._heap],
@@ -173,7 +181,8 @@ class ExpertHeap:
         if self._heap:
             raise RuntimeError("restore needs an empty expert buffer")
         if state["admission"] != self.admission:
-            raise ValueError(f"the checkpointed D_E ranks episodes by {state['admission']}, this one by {self.admission}")
+            raise AdmissionMismatch(f"the checkpointed D_E ranks episodes by {state['admission']}, this run by "
+                                    f"{self.admission} (--expert-admission)")
         entries = [(float(key), int(order), ep) for ep, key, order in state["entries"]]
         total = sum(e[2].length for e in entries)
         if total > self.capacity:
@@ -185,12 +194,15 @@ class ExpertHeap:
         self._return_range = None
         self.admitted, self.rejected, self.evicted = int(state["admitted"]), int(state["rejected"]), int(state["evicted"])
 
-    def returns(self) -> list[float]:
-        return [e[2].episode_return for e in self._heap]
-
-    def gather(self, n: int, rng: np.random.Generator, out: dict[str, np.ndarray], rows: slice | np.ndarray,
-               rewards: bool) -> None:
-        """Draw `n` transitions uniformly over all stored transitions (with replacement) into `out[...][rows]`."""
+    def gather(self, n: int, rng: np.random.Generator, out: Batch[np.ndarray], rows: slice | np.ndarray,
+               rewards: bool) -> Drawn:
+        """Draw `n` transitions uniformly over all stored transitions (with replacement) into `out`'s `rows`."""
         if not self._heap:
             raise LookupError("expert buffer is empty")
-        self.index.gather(self.storage, n, rng, out, rows, rewards)
+        return Drawn(self.index, self.index.gather(self.storage, n, rng, out, rows, rewards))
+
+    def gather_state_actions(self, n: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
+        """`n` (state, action) pairs drawn uniformly over all stored transitions."""
+        if not self._heap:
+            raise LookupError("expert buffer is empty")
+        return self.index.gather_state_actions(self.storage, n, rng)

@@ -14,9 +14,9 @@ from collections import deque
 
 import numpy as np
 
-from silcr.common.protocol import Episode
+from silcr.common.protocol import Batch, Episode
 
-from .storage import EpisodeIndex, RowStorage, detach
+from .storage import Drawn, EpisodeIndex, RowStorage, Watcher, detach
 
 
 class OnlineFifo:
@@ -33,10 +33,11 @@ class OnlineFifo:
     before `capacity` transitions are stored (counted in `evicted_for_rows`).
     `max_episode_steps` is the longest episode to expect; the service passes the
     env's limit. Without it the ring reserves room for episodes as long as
-    `capacity`, which can triple its rows.
+    `capacity`, which can triple its rows. `watcher` is told of every episode that
+    enters or leaves.
     """
 
-    def __init__(self, capacity: int, max_episode_steps: int | None = None) -> None:
+    def __init__(self, capacity: int, max_episode_steps: int | None = None, watcher: Watcher | None = None) -> None:
         if capacity <= 0:
             raise ValueError(f"online capacity must be positive, got {capacity}")
         self.capacity = capacity
@@ -47,6 +48,7 @@ class OnlineFifo:
         self._head = 0  # next free row
         self.evicted_episodes = 0
         self.evicted_for_rows = 0
+        self._watcher = watcher
 
     def __len__(self) -> int:
         return self.index.transitions
@@ -72,6 +74,8 @@ class OnlineFifo:
         with self.storage.lock:
             detach(old)
         self.evicted_episodes += 1
+        if self._watcher is not None:
+            self._watcher.left(old)
 
     def add(self, ep: Episode) -> None:
         """Store `ep`; its arrays become views of the ring (no other copy is kept)."""
@@ -87,6 +91,8 @@ class OnlineFifo:
             self.storage.view(row, ep)
         self._episodes.append((self.index.add(row, ep), ep))
         self._head = row + ep.length + 1
+        if self._watcher is not None:
+            self._watcher.entered(ep)
 
     def episodes(self) -> list[Episode]:
         return [e[1] for e in self._episodes]
@@ -105,12 +111,12 @@ class OnlineFifo:
         self.evicted_episodes = int(state["evicted_episodes"])
         self.evicted_for_rows = int(state["evicted_for_rows"])
 
-    def gather(self, n: int, rng: np.random.Generator, out: dict[str, np.ndarray], rows: slice | np.ndarray,
-               rewards: bool) -> None:
-        """Draw `n` transitions uniformly (with replacement) into `out[...][rows]`."""
+    def gather(self, n: int, rng: np.random.Generator, out: Batch[np.ndarray], rows: slice | np.ndarray,
+               rewards: bool) -> Drawn:
+        """Draw `n` transitions uniformly (with replacement) into `out`'s `rows`."""
         if not self._episodes:
             raise LookupError("online buffer is empty")
-        self.index.gather(self.storage, n, rng, out, rows, rewards)
+        return Drawn(self.index, self.index.gather(self.storage, n, rng, out, rows, rewards))
 
     def gather_recent(self, n: int, window: int, rng: np.random.Generator) -> tuple[np.ndarray, np.ndarray]:
         """`n` (state, action) pairs drawn uniformly from the newest whole episodes that hold

@@ -3,7 +3,8 @@
 What goes in is not decided here: `ReplayState.state()` gathers it, each part
 (D_O, D_E, the rate limiter, the counters) providing its own, and
 `ReplayState.restore()` puts it back. Other parts of the service (the inbox's and
-the writer's counters) ride along by name. This module only stores that structure.
+the writer's counters) ride along by name. This module only stores that structure,
+and keeps the schedule both launchers share (`PeriodicCheckpoints`).
 
 Layout: a msgpack stream, written atomically (temporary file, fsync, rename), so
 a crash while checkpointing leaves the previous checkpoint usable:
@@ -21,6 +22,7 @@ Files of version 1 (silcr 0.1, which wrote the tables' fields one by one) are re
 
 from __future__ import annotations
 
+import logging
 import threading
 import time
 from dataclasses import dataclass, field
@@ -30,10 +32,16 @@ from typing import TYPE_CHECKING, Any, BinaryIO, Protocol
 import msgpack
 
 from silcr.common import protocol as P
+from silcr.common.algorithms import algorithm
 from silcr.common.atomic_file import write_atomic
+from silcr.common.schedule import Every
+
+from .expert_heap import AdmissionMismatch
 
 if TYPE_CHECKING:
-    from .service import ReplayState
+    from .replay import ReplayState
+
+log = logging.getLogger("buffer")
 
 SNAPSHOT_KIND = "silcr-buffer"
 SNAPSHOT_VERSION = 2
@@ -109,16 +117,14 @@ def take(state: "ReplayState", **parts: Part) -> Snapshot:
     header = {
         "v": SNAPSHOT_VERSION,
         "kind": SNAPSHOT_KIND,
-        "env": state.spec.env_id,
-        "algo": state.cfg.algo,
+        **state.identity(),
         "written_at": time.time(),
         "transitions": state.transitions_received,
         "state": _replace_episodes(state.state(), ref),
         "parts": {name: part.state() for name, part in parts.items()},
     }
     header["n_episodes"] = len(episodes)
-    locks = (state.fifo.storage.lock,) + ((state.heap.storage.lock,) if state.heap is not None else ())
-    return Snapshot(header, episodes, locks)
+    return Snapshot(header, episodes, state.locks())
 
 
 def write(path: Path, snap: Snapshot) -> None:
@@ -129,7 +135,7 @@ def write(path: Path, snap: Snapshot) -> None:
             for lock in snap.locks:  # always in this order; the service holds at most one
                 lock.acquire()
             try:
-                payload = P.EpisodeCodec.encode(ep)
+                payload = ep.encode()
             finally:
                 for lock in snap.locks:
                     lock.release()
@@ -151,7 +157,7 @@ def _state_from_v1(header: dict[str, Any]) -> dict[str, Any]:
                  "evicted_for_rows": 0},
         "heap": {"admission": "return", "entries": [[{_EPISODE: i}, ret, order] for i, ret, order in header["heap"]],
                  "admitted": c["heap"][0], "rejected": c["heap"][1], "evicted": c["heap"][2]}
-        if header["algo"] == "silcr" else None,
+        if algorithm(header["algo"]).ranks_own_episodes else None,
         "limiter": {"inserts": header["limiter"]["inserts"], "samples": header["limiter"]["samples"], "paused": False},
     }
 
@@ -163,21 +169,22 @@ def restore(path: Path, state: "ReplayState") -> Snapshot:
     """
     try:
         with open(path, "rb") as f:
-            unpacker = msgpack.Unpacker(f, raw=False, max_buffer_size=2 * state.codec.max_bytes)
+            unpacker = msgpack.Unpacker(f, raw=False, max_buffer_size=2 * state.limits.max_bytes)
             header = next(unpacker)
             if not isinstance(header, dict) or header.get("kind") != SNAPSHOT_KIND:
                 raise SnapshotError(f"{path} is not a silcr buffer checkpoint")
             if header.get("v") not in (1, SNAPSHOT_VERSION):
                 raise SnapshotError(f"{path}: checkpoint version {header.get('v')} is not supported")
-            if header["env"] != state.spec.env_id or header["algo"] != state.cfg.algo:
+            here = state.identity()
+            if header["env"] != here["env"] or header["algo"] != here["algo"]:
                 raise SnapshotError(f"{path} is for {header['algo']} on {header['env']}, this run is "
-                                    f"{state.cfg.algo} on {state.spec.env_id}")
+                                    f"{here['algo']} on {here['env']}")
             episodes = []
             for _ in range(int(header["n_episodes"])):
                 payload = next(unpacker)
                 if not isinstance(payload, bytes):
                     raise SnapshotError(f"{path}: episode record is not bytes")
-                episodes.append(state.codec.decode(payload))
+                episodes.append(P.Episode.decode(payload, state.limits))
     except StopIteration:
         raise SnapshotError(f"{path} is truncated") from None
     except P.ProtocolError as e:
@@ -191,11 +198,9 @@ def restore(path: Path, state: "ReplayState") -> Snapshot:
             header["transitions"] = header["counters"]["transitions_received"]
         else:
             saved, parts = header["state"], header["parts"]
-        admission = (saved.get("heap") or {}).get("admission")
-        if admission is not None and state.heap is not None and admission != state.heap.admission:
-            raise SnapshotError(f"{path} ranks D_E by {admission}, this run by {state.heap.admission} "
-                                f"(--expert-admission)")
         state.restore(_put_episodes_back(saved, episodes))
+    except AdmissionMismatch as e:
+        raise SnapshotError(f"{path}: {e}") from None
     except (IndexError, KeyError, TypeError, ValueError) as e:
         raise SnapshotError(f"{path} has an inconsistent index ({type(e).__name__}: {e})") from None
     return Snapshot(header, episodes, parts=parts)
@@ -216,7 +221,6 @@ class BackgroundWriter:
         self.failed = 0
         self.last_transitions = 0
         self.last_written_at: float | None = None
-        self.last_seconds = 0.0
         self.last_error = ""
 
     def state(self) -> dict[str, int]:
@@ -237,7 +241,6 @@ class BackgroundWriter:
         return True
 
     def _write(self, snap: Snapshot) -> None:
-        t0 = time.monotonic()
         try:
             write(self.path, snap)
         except OSError as e:
@@ -247,8 +250,48 @@ class BackgroundWriter:
         self.written += 1
         self.last_transitions = snap.transitions
         self.last_written_at = time.time()
-        self.last_seconds = time.monotonic() - t0
 
     def join(self) -> None:
         if self._thread is not None:
             self._thread.join()
+
+
+class PeriodicCheckpoints:
+    """The buffer's checkpoint schedule, the same for both launchers: a snapshot every `interval`
+    seconds written in the background (none if `interval` is 0), and a last one on the way out,
+    so that a clean stop (Ctrl-C, the end of the run) loses nothing. The named `parts` (the
+    inbox's counters, say) ride along; the writer's own counters always do."""
+
+    def __init__(self, path: Path, interval: float, **parts: Part) -> None:
+        self.writer = BackgroundWriter(path)
+        self.parts: dict[str, Part] = {**parts, "writer": self.writer}
+        self._every = Every(interval, first_now=False, never_if_zero=True)
+
+    def restore_parts(self, snap: Snapshot | None) -> None:
+        """Put back the parts' counters a restored snapshot holds."""
+        if snap is not None:
+            for name, part in self.parts.items():
+                if name in snap.parts:
+                    part.restore(snap.parts[name])
+
+    def maybe(self, replay: "ReplayState", now: float | None = None) -> None:
+        if self._every.due(now):
+            self.writer.submit(take(replay, **self.parts))
+
+    def final(self, replay: "ReplayState") -> None:
+        self.writer.join()
+        t0 = time.monotonic()
+        try:
+            write(self.writer.path, take(replay, **self.parts))
+            log.info("checkpoint of %d transitions written to %s in %.1fs", replay.transitions_received,
+                     self.writer.path, time.monotonic() - t0)
+        except OSError as e:
+            log.error("final checkpoint failed: %s", e)
+        if self.writer.failed:
+            log.error("%d periodic checkpoints failed; last error: %s", self.writer.failed, self.writer.last_error)
+
+    def stats(self) -> dict[str, Any]:
+        w = self.writer
+        return {"checkpoints_written": w.written, "checkpoints_skipped": w.skipped, "checkpoints_failed": w.failed,
+                "checkpoint_transitions": w.last_transitions,
+                "checkpoint_age_s": time.time() - w.last_written_at if w.last_written_at else None}

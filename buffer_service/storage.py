@@ -14,10 +14,20 @@ following row and never stored twice.
 from __future__ import annotations
 
 import threading
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
-from silcr.common.protocol import Episode
+from silcr.common.protocol import Batch, Episode
+
+
+class Watcher(Protocol):
+    """Told of every episode that enters or leaves a table (the labeller keeps what it needs from them)."""
+
+    def entered(self, ep: Episode) -> None: ...
+
+    def left(self, ep: Episode) -> None: ...
 
 
 class RowStorage:
@@ -78,7 +88,8 @@ def detach(ep: Episode) -> None:
 
 
 class EpisodeIndex:
-    """Per-episode columns indexed by slot; sampling is uniform over all live transitions.
+    """Per-episode columns indexed by slot (first row, length, how it ended, the policy version
+    that acted, its return); sampling is uniform over all live transitions.
 
     Free slots have length 0, so they are never drawn. The cumulative lengths are
     recomputed (vectorised) only when the set of episodes changed since the last draw.
@@ -90,6 +101,7 @@ class EpisodeIndex:
         self.terminated = np.zeros(slots, bool)
         self.truncated = np.zeros(slots, bool)
         self.version = np.zeros(slots, np.int64)
+        self.episode_return = np.zeros(slots, np.float64)
         self._free = list(range(slots - 1, -1, -1))
         self._cum: np.ndarray | None = None
         self.transitions = 0
@@ -103,6 +115,7 @@ class EpisodeIndex:
         self.terminated[slot] = ep.terminated
         self.truncated[slot] = ep.truncated
         self.version[slot] = ep.policy_version
+        self.episode_return[slot] = ep.episode_return
         self.transitions += ep.length
         self._cum = None
         return slot
@@ -118,7 +131,7 @@ class EpisodeIndex:
 
     def _grow(self) -> None:
         n = len(self.row)
-        for name in ("row", "length", "terminated", "truncated", "version"):
+        for name in ("row", "length", "terminated", "truncated", "version", "episode_return"):
             setattr(self, name, np.concatenate([getattr(self, name), np.zeros_like(getattr(self, name))]))
         self._free = list(range(2 * n - 1, n - 1, -1))
         self._cum = None
@@ -140,24 +153,42 @@ class EpisodeIndex:
         t = g - (cum[i] - self.length[slot])
         return slot, t, self.row[slot] + t
 
-    def gather(self, storage: RowStorage, n: int, rng: np.random.Generator, out: dict[str, np.ndarray],
-               rows: slice | np.ndarray, rewards: bool) -> None:
-        """Draw `n` transitions uniformly (with replacement) into `out[...][rows]`."""
+    def gather(self, storage: RowStorage, n: int, rng: np.random.Generator, out: Batch[np.ndarray],
+               rows: slice | np.ndarray, rewards: bool) -> np.ndarray:
+        """Draw `n` transitions uniformly (with replacement) into `out`'s `rows` (the env's rewards
+        too if `rewards`); return the slot of each one's episode."""
         slot, t, r = self._draw(n, rng)
-        out["obs"][rows] = storage.obs[r]
-        out["next_obs"][rows] = storage.obs[r + 1]
-        out["actions"][rows] = storage.actions[r]
+        out.obs[rows] = storage.obs[r]
+        out.next_obs[rows] = storage.obs[r + 1]
+        out.actions[rows] = storage.actions[r]
         if rewards:
-            out["rewards"][rows] = storage.rewards[r]
+            out.rewards[rows] = storage.rewards[r]
         last = t == self.length[slot] - 1
         terminated = self.terminated[slot]
-        out["terminated"][rows] = last & terminated
+        out.terminated[rows] = last & terminated
         # gymnasium may report both on the same step; termination wins (no bootstrap).
-        out["truncated"][rows] = last & self.truncated[slot] & ~terminated
-        out["policy_version"][rows] = self.version[slot]
+        out.truncated[rows] = last & self.truncated[slot] & ~terminated
+        out.policy_version[rows] = self.version[slot]
+        return slot
 
     def gather_state_actions(self, storage: RowStorage, n: int, rng: np.random.Generator,
                              slots: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
         """`n` (state, action) pairs drawn uniformly over the transitions of `slots` (default: all)."""
         r = self._draw(n, rng, slots)[2]
         return storage.obs[r], storage.actions[r]
+
+
+@dataclass
+class Drawn:
+    """The rows one table put into a batch, described by their episodes (what a labeller needs)."""
+
+    index: EpisodeIndex
+    slots: np.ndarray
+
+    @property
+    def episode_return(self) -> np.ndarray:
+        return self.index.episode_return[self.slots]
+
+    @property
+    def episode_length(self) -> np.ndarray:
+        return self.index.length[self.slots]

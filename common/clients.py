@@ -1,21 +1,22 @@
-"""Protocol clients: one object per direction of traffic, each over Zenoh or in-process.
+"""Protocol clients: both ends of every channel, each over Zenoh or in-process.
 
-    actor   --EpisodeWriter-->   buffer    write(episode); paused() while the rate limiter says so
-    learner <--BatchStream---    buffer    iterate over mixed batches
-    actor   <--WeightsClient--   learner   update(); .policy
-    learner --WeightsServer-->   actors    publish(weights)
-    any     --StatsPublisher-->  monitors  put(stats dict), JSON on silcr/<run>/stats/...
-    any     --Shutdown-------->  everyone  announce(reason); `stop_on_shutdown` listens
-    buffer  --Throttle-------->  actors    send(paused); read by `ZenohEpisodeWriter.paused()`
+    channel    sending end                       receiving end
+    episodes   EpisodeWriter (actor)             ReplayServer.next() (buffer)
+    sample     BatchStream (learner)             ReplayServer.next() -> SampleQuery.answer() (buffer)
+    weights    WeightsServer (learner)           WeightsClient (actor): update(); .policy
+    throttle   Throttle.send(paused) (buffer)    EpisodeWriter.paused() (actor)
+    shutdown   Shutdown.announce(reason)         stop_on_shutdown (everyone)
+    stats      StatsPublisher.put(dict)          any Zenoh client (silcr monitor, TensorBoard's feeder)
+    liveliness (role_session declares tokens)    ActorPresence (buffer)
 
-The roles (`silcr.actor.service`, `silcr.learner.service`) are loops over these
-objects and never touch keys, codecs or Zenoh themselves. The Zenoh clients are
-what `silcr train` and a run spread over machines use; the in-process ones let
-`silcr train --single-process` run the very same actor and learner code in one
-process, in a fixed order, with no network (deploy/single_process.py).
+The roles (`silcr.actor.service`, `silcr.learner.service`, `silcr.buffer_service.service`)
+are loops over these objects and never touch keys, codecs or Zenoh themselves. The
+Zenoh clients are what `silcr train` and a run spread over machines use; the
+in-process ones let `silcr train --single-process` run the very same actor and
+learner code in one process, in a fixed order, with no network (deploy/single_process.py).
 
 The in-process clients reach the buffer through `Replay`, the two methods of
-`silcr.buffer_service.service.ReplayState` they need, so this module never imports
+`silcr.buffer_service.replay.ReplayState` they need, so this module never imports
 a component.
 """
 
@@ -31,6 +32,7 @@ import numpy as np
 import zenoh
 
 from silcr.common import protocol as P
+from silcr.common.inbox import Inbox
 from silcr.common.lifecycle import StopFlag
 
 log = logging.getLogger("clients")
@@ -90,14 +92,14 @@ class ZenohEpisodeWriter(EpisodeWriter):
         msg = self._throttle.try_recv()
         if msg is not None:
             try:
-                self._paused = bool(P.decode_control(msg.payload.to_bytes(), "throttle")["paused"])
-            except (P.ProtocolError, KeyError):
+                self._paused = P.ThrottleNotice.decode(msg.payload.to_bytes()).paused
+            except P.ProtocolError:
                 self.malformed_throttle += 1
                 log.warning("ignoring malformed throttle message")
         return self._paused
 
     def write(self, ep: P.Episode) -> bool:
-        payload = P.EpisodeCodec.encode(ep)
+        payload = ep.encode()
         if not self._pub.matching_status.matching:
             log.info("no buffer service is listening; holding episode %d until one is", ep.seq)
             t0 = time.monotonic()
@@ -262,6 +264,68 @@ class InProcessBatchStream(BatchStream):
             yield batch
 
 
+class SampleQuery:
+    """One sample query, held until the buffer answers it (the receiving end of the sample channel)."""
+
+    def __init__(self, query: zenoh.Query, key: str) -> None:
+        self._query = query
+        self._key = key
+
+    @property
+    def payload(self) -> bytes | None:
+        return self._query.payload.to_bytes() if self._query.payload is not None else None
+
+    def answer(self, reply: P.BatchReply) -> None:
+        with self._query:  # leaving the block finalizes the query, so the learner's get() ends at once
+            self._query.reply(self._key, reply.encode())
+
+    def refuse(self, why: str) -> None:
+        with self._query:
+            self._query.reply_err(why.encode())
+
+
+class ZenohReplayServer:
+    """The buffer's end of the episode and sample channels: a subscriber and a queryable that hand
+    what arrives to one bounded `Inbox` (see there: a full inbox back-pressures the actors, so no
+    episode is dropped), read by the service's one thread with `next()`."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys, inbox: Inbox) -> None:
+        self.inbox = inbox
+        session.declare_subscriber(keys.episodes, lambda s: inbox.put_data(s.payload.to_bytes()))
+        session.declare_queryable(keys.sample, lambda q: inbox.put_request(SampleQuery(q, keys.sample)))
+
+    def next(self, timeout: float) -> bytes | SampleQuery | None:
+        """A waiting sample query (first), else an episode message, else None after `timeout` s."""
+        return self.inbox.get(timeout)
+
+    def close(self) -> None:
+        """Stop taking messages; refuse the queries still waiting (their learners retry elsewhere or stop)."""
+        for query in self.inbox.close():
+            query.refuse("buffer service is shutting down")
+
+
+class ActorPresence:
+    """The actors alive now, from their liveliness tokens (joins and leaves are logged)."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys) -> None:
+        self._alive: set[str] = set()
+        self._lock = threading.Lock()
+        session.liveliness().declare_subscriber(keys.alive_actors, self._on, history=True)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        who = str(sample.key_expr).rsplit("/", 1)[-1]
+        with self._lock:
+            if sample.kind == zenoh.SampleKind.PUT:
+                self._alive.add(who)
+            else:
+                self._alive.discard(who)
+        log.info("actor %s %s", who, "joined" if sample.kind == zenoh.SampleKind.PUT else "left")
+
+    def __len__(self) -> int:
+        with self._lock:
+            return len(self._alive)
+
+
 # ---------------------------------------------------------------------------
 # learner -> actors: weights
 # ---------------------------------------------------------------------------
@@ -340,7 +404,7 @@ class ZenohWeightsClient(WeightsClient[PolicyT]):
             for reply in querier.get():
                 if reply.ok is not None:
                     try:
-                        return P.decode_weights(reply.ok.payload.to_bytes())
+                        return P.Weights.decode(reply.ok.payload.to_bytes())
                     except P.ProtocolError as e:
                         self.rejected += 1
                         log.warning("ignoring malformed weights reply: %s", e)
@@ -353,7 +417,7 @@ class ZenohWeightsClient(WeightsClient[PolicyT]):
         if msg is None:
             return False
         try:
-            new = P.decode_weights(msg.payload.to_bytes())
+            new = P.Weights.decode(msg.payload.to_bytes())
         except P.ProtocolError as e:
             self.rejected += 1
             log.warning("ignoring malformed weights: %s", e)
@@ -388,7 +452,7 @@ class ZenohWeightsServer(WeightsServer):
                 query.reply(self._key, latest)
 
     def publish(self, weights: P.Weights) -> None:
-        payload = P.encode_weights(weights)
+        payload = weights.encode()
         with self._lock:
             self._latest = payload
         self._pub.put(payload)
@@ -433,7 +497,7 @@ class StatsPublisher:
                                               priority=zenoh.Priority.DATA_LOW)
 
     def put(self, stats: dict) -> None:
-        self._pub.put(P.encode_stats(stats))
+        self._pub.put(P.Stats(stats).encode())
 
 
 # ---------------------------------------------------------------------------
@@ -449,7 +513,7 @@ class Throttle:
                                               priority=zenoh.Priority.DATA_HIGH)
 
     def send(self, paused: bool) -> None:
-        self._pub.put(P.encode_control("throttle", paused=paused))
+        self._pub.put(P.ThrottleNotice(paused).encode())
 
 
 class Shutdown:
@@ -459,7 +523,7 @@ class Shutdown:
         self._pub = session.declare_publisher(keys.control_shutdown, congestion_control=zenoh.CongestionControl.BLOCK)
 
     def announce(self, reason: str) -> None:
-        self._pub.put(P.encode_control("shutdown", reason=reason))
+        self._pub.put(P.ShutdownNotice(reason).encode())
 
 
 def stop_on_shutdown(session: zenoh.Session, keys: P.Keys, stop: StopFlag) -> None:

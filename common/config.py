@@ -18,12 +18,11 @@ from typing import Any, Mapping
 
 import tomli_w
 
+from silcr.common import algorithms
 from silcr.common.envs import EPISODIC_IDS, REWARD_MODES
 from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
 
-ALGOS = ("silcr", "sac", "sqil", "gasil")
-RANKED_ALGOS = ("silcr", "gasil")  # D_E ranks the agent's own episodes by return
-ENV_REWARD_ALGOS = ("sac", "gasil")  # learn from the env's reward (--reward); SILCR and SQIL ignore it
+_ENV_REWARD = [a.name for a in algorithms.ALGORITHMS.values() if a.uses_env_reward]
 GASIL_REWARD_FORMS = ("logit", "positive", "negative")  # r_D from the discriminator (learner.gasil)
 EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.expert_heap)
 TANH_LOG_PROB_FORMS = ("exact", "official")  # log(1 - tanh^2) in the policy's log-probability (learner.sac)
@@ -55,10 +54,10 @@ class Config:
     run: str = _opt("", ALL | {"monitor"}, "run name; the Zenoh keys live under silcr/<run>/ (default: <env>-<algo>-<time> for train)")
     runs_dir: str = _opt("runs", SERVICE, "directory holding one sub-directory per run")
     env: str = _opt("Hopper-v5", ALL, "gymnasium environment id (continuous control, flat Box spaces)")
-    algo: str = _opt("silcr", ALL, "silcr: constant 0/1 rewards from D_O and the top-M D_E; sac: plain SAC on the env's reward; "
-                     "sqil: constant 0/1 rewards with D_E fixed to --demos; gasil: SAC on the env's reward plus a discriminator's "
-                     "reward for looking like the top-M D_E (docs/algorithm.md, \"GASIL\")", choices=ALGOS)
-    reward: str = _opt("episodic", ALL, "reward the actors' env gives to sac and gasil (silcr and sqil always use episodic)", choices=REWARD_MODES)
+    algo: str = _opt(algorithms.DEFAULT, ALL, "; ".join(f"{a.name}: {a.summary}" for a in algorithms.ALGORITHMS.values())
+                     + " (docs/algorithm.md)", choices=tuple(algorithms.ALGORITHMS))
+    reward: str = _opt("episodic", ALL, f"reward the actors' env pays, for the algorithms that learn from it ({', '.join(_ENV_REWARD)}); "
+                       f"the others always use episodic", choices=REWARD_MODES)
     seed: int = _opt(0, ALL, "base seed; actor i uses seed + i")
     # --- Zenoh -----------------------------------------------------------------
     connect: list[str] = _opt([], ALL | {"monitor"}, "Zenoh endpoints to connect to (default: the local router)", nargs="+")
@@ -133,12 +132,8 @@ class Config:
 
     @property
     def actor_reward(self) -> str:
-        return self.reward if self.algo in ENV_REWARD_ALGOS else "episodic"
-
-    @property
-    def constant_rewards(self) -> bool:
-        """SILCR and SQIL: reward 0 for D_O rows and 1 for D_E rows (paper eq. 3)."""
-        return self.algo in ("silcr", "sqil")
+        """The reward the actors' env pays: `--reward` for the algorithms that learn from it, else episodic."""
+        return self.reward if algorithms.algorithm(self.algo).uses_env_reward else "episodic"
 
     def to_dict(self) -> dict[str, Any]:
         return dataclasses.asdict(self)
@@ -150,6 +145,11 @@ class Config:
 
 
 FIELDS = {f.name: f for f in dataclasses.fields(Config)}
+
+
+def _default(name: str) -> Any:
+    f = FIELDS[name]
+    return f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
 
 
 def option_name(name: str) -> str:
@@ -313,21 +313,20 @@ def validate(cfg: Config, role: str) -> None:
         raise ConfigError("--buffer-checkpoint-interval", f"must be >= 0, got {cfg.buffer_checkpoint_interval}")
     if cfg.stats_interval <= 0:
         raise ConfigError("--stats-interval", f"must be > 0, got {cfg.stats_interval}")
+    algo = algorithms.algorithm(cfg.algo)
+    for name in algorithms.ALGORITHM_OPTIONS:
+        # An option only other algorithms use does nothing here: say so rather than ignore it.
+        if name not in algo.options and role in FIELDS[name].metadata["roles"] and getattr(cfg, name) != _default(name):
+            users = " or ".join(f"--algo {a}" for a in algorithms.taking(name))
+            raise ConfigError(option_name(name), f"only {users} uses it (got --algo {cfg.algo})")
     if role in ("train", "buffer"):
-        if cfg.algo == "sqil" and not cfg.demos:
-            raise ConfigError("--demos", "--algo sqil needs a demonstrations file (make one with `silcr demos CHECKPOINT -o demos.npz`)")
-        if cfg.demos and cfg.algo != "sqil":
-            raise ConfigError("--demos", f"only --algo sqil uses demonstrations (got --algo {cfg.algo})")
-        if cfg.demos and not Path(cfg.demos).is_file():
-            raise ConfigError("--demos", f"no such file: {cfg.demos}")
-        if cfg.expert_init and cfg.algo != "silcr":
-            raise ConfigError("--expert-init", f"only --algo silcr ranks demonstrations with its own episodes (got --algo "
-                                               f"{cfg.algo}; SQIL takes them with --demos)")
-        if cfg.expert_init and not Path(cfg.expert_init).is_file():
-            raise ConfigError("--expert-init", f"no such file: {cfg.expert_init}")
-        if cfg.expert_admission != "return" and cfg.algo != "silcr":
-            raise ConfigError("--expert-admission", f"only --algo silcr fills D_E from its own episodes (got --algo {cfg.algo})")
-    if cfg.env in EPISODIC_IDS and cfg.algo in ENV_REWARD_ALGOS and cfg.reward == "dense":
+        if algo.needs_demos and not cfg.demos:
+            raise ConfigError("--demos", f"--algo {cfg.algo} needs a demonstrations file (make one with "
+                                         f"`silcr demos CHECKPOINT -o demos.npz`)")
+        for name in ("demos", "expert_init"):
+            if getattr(cfg, name) and not Path(getattr(cfg, name)).is_file():
+                raise ConfigError(option_name(name), f"no such file: {getattr(cfg, name)}")
+    if cfg.env in EPISODIC_IDS and algo.uses_env_reward and cfg.reward == "dense":
         raise ConfigError("--reward", f"{cfg.env} is {EPISODIC_IDS[cfg.env]} with the episodic reward; for the dense "
                                       f"reward use --env {EPISODIC_IDS[cfg.env]}")
     if cfg.learning_starts >= cfg.online_capacity:

@@ -15,8 +15,9 @@ Format: one NumPy `.npz` archive (no pickled objects), version 1:
 | `returns` | (E,), float64 | each episode's dense return (sum of its rewards) |
 | `terminated`, `truncated` | (E,), bool | how each episode ended |
 
-`load_demos` checks all of it against the run's env and raises `DemosError` with
-one line naming the problem.
+`load_demos` checks the file against the run's env, and each episode with the same
+function that guards the network (`protocol.validate_episode`), and raises
+`DemosError` with one line naming the problem.
 """
 
 from __future__ import annotations
@@ -28,7 +29,7 @@ import numpy as np
 
 from silcr.common.atomic_file import write_atomic
 from silcr.common.envs import EnvSpec
-from silcr.common.protocol import Episode
+from silcr.common.protocol import Episode, EpisodeLimits, ProtocolError, validate_episode
 
 DEMOS_FORMAT = "silcr-demos"
 DEMOS_VERSION = 1
@@ -93,8 +94,6 @@ def load_demos(path: Path, spec: EnvSpec) -> list[Episode]:
     lengths = a["episode_lengths"]
     if lengths.ndim != 1 or lengths.size == 0 or lengths.dtype.kind not in "iu" or (lengths < 1).any():
         raise DemosError(f"{where}: episode_lengths must be a non-empty list of positive integers")
-    if (lengths > spec.max_episode_steps).any():
-        raise DemosError(f"{where}: an episode is longer than {spec.env_id}'s limit of {spec.max_episode_steps} steps")
     n_ep, n_tr = int(lengths.size), int(lengths.sum())
     expect = {
         "obs": (n_tr + n_ep, spec.obs_dim),
@@ -112,23 +111,22 @@ def load_demos(path: Path, spec: EnvSpec) -> list[Episode]:
                 raise DemosError(f"{where}: {k} has dtype {a[k].dtype}, expected bool")
         elif a[k].dtype.kind != "f":
             raise DemosError(f"{where}: {k} has dtype {a[k].dtype}, expected floating point")
-        elif not np.isfinite(a[k]).all():
-            raise DemosError(f"{where}: {k} contains NaN or infinite values")
-    if np.abs(a["actions"]).max() > 1.0 + 1e-6:
-        raise DemosError(f"{where}: actions must lie in [-1, 1] (the policy's squashed actions)")
 
+    limits = EpisodeLimits(spec.obs_dim, spec.act_dim, spec.max_episode_steps)
     episodes = []
     o = t = 0
     for i, n in enumerate(lengths.tolist()):
-        rewards = a["rewards"][t : t + n].astype(np.float32)
-        if not np.isclose(float(rewards.sum(dtype=np.float64)), float(a["returns"][i]), rtol=1e-4, atol=1e-3):
-            raise DemosError(f"{where}: episode {i}'s return {float(a['returns'][i]):.3f} is not the sum of its rewards")
-        episodes.append(Episode(
+        ep = Episode(
             actor_id=0, seq=i, policy_version=-1, episode_return=float(a["returns"][i]),
             terminated=bool(a["terminated"][i]), truncated=bool(a["truncated"][i]),
             obs=a["obs"][o : o + n + 1].astype(np.float32), actions=a["actions"][t : t + n].astype(np.float32),
-            rewards=rewards, incarnation=DEMO_INCARNATION,
-        ))
+            rewards=a["rewards"][t : t + n].astype(np.float32), incarnation=DEMO_INCARNATION,
+        )
+        try:
+            validate_episode(ep, limits)
+        except ProtocolError as e:
+            raise DemosError(f"{where}: episode {i}: {e}") from None
+        episodes.append(ep)
         o += n + 1
         t += n
     return episodes

@@ -4,10 +4,15 @@ This is the only place where keys and message layouts are declared; every
 component imports it. `docs/protocol.md` documents the same contract for people
 and for tools written in other languages.
 
-All binary messages are msgpack maps carrying `"v": SCHEMA_VERSION`. Arrays travel
-as `[dtype, shape, raw_bytes]` (little-endian numpy dtype string, list of ints,
-C-contiguous bytes) so that decoding is a zero-copy `np.frombuffer`. Stats are
-JSON (UTF-8) so that any Zenoh client can read them without this package.
+Every message kind is a dataclass with `encode()` and a `decode(payload)` class
+method that returns it or raises `ProtocolError` naming the problem: `Episode`,
+`Weights`, `SampleRequest`, `BatchReply`, `ThrottleNotice`, `ShutdownNotice` and
+`Stats`. All binary messages are msgpack maps carrying `"v": SCHEMA_VERSION` and a
+`kind`. Arrays travel as `[dtype, shape, raw_bytes]` (little-endian numpy dtype
+string, list of ints, C-contiguous bytes) so that decoding is a zero-copy
+`np.frombuffer`. Stats are JSON (UTF-8) so that any Zenoh client can read them
+without this package. What makes an episode valid is stated once, in
+`validate_episode`, which the demonstrations loader uses too.
 """
 
 from __future__ import annotations
@@ -16,8 +21,8 @@ import json
 import math
 import os
 import re
-from dataclasses import dataclass, field
-from typing import Any, Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any, Callable, Generic, Mapping, TypeVar
 
 import msgpack
 import numpy as np
@@ -99,6 +104,10 @@ class Keys:
     def stats_actor(self, actor_id: int) -> str:
         return f"{self.prefix}/stats/actor/{actor_id}"
 
+    def stats(self, role: str, ident: int | str | None = None) -> str:
+        """The stats key of one component: `stats/buffer`, `stats/learner`, `stats/actor/<id>`."""
+        return f"{self.prefix}/stats/{role}" + ("" if ident is None else f"/{ident}")
+
     @property
     def stats_all(self) -> str:
         return f"{self.prefix}/stats/**"
@@ -120,10 +129,6 @@ class Keys:
     @property
     def alive_actors(self) -> str:
         return f"{self.prefix}/alive/actor/*"
-
-    @property
-    def alive_all(self) -> str:
-        return f"{self.prefix}/alive/**"
 
 
 # ---------------------------------------------------------------------------
@@ -170,6 +175,21 @@ def _unpack_map(payload: bytes, max_bytes: int | None = None) -> dict:
     return msg
 
 
+def _unpack_kind(payload: bytes, kind: str, max_bytes: int | None = None) -> dict:
+    msg = _unpack_map(payload, max_bytes)
+    if msg.get("kind") != kind:
+        raise ProtocolError("bad_field", f"kind is {msg.get('kind')!r}, expected {kind!r}")
+    return msg
+
+
+def _pack(msg: dict) -> bytes:
+    return msgpack.packb({"v": SCHEMA_VERSION, **msg}, use_bin_type=True)
+
+
+#: Integers are stored in int64 columns: anything outside cannot be stored or used.
+INT64_MAX = 2**63 - 1
+
+
 def _get(msg: Mapping, name: str, types: type | tuple[type, ...]) -> Any:
     if name not in msg:
         raise ProtocolError("missing_field", f"field {name!r} is missing")
@@ -185,6 +205,16 @@ def _get(msg: Mapping, name: str, types: type | tuple[type, ...]) -> Any:
 # ---------------------------------------------------------------------------
 # Episodes (actor -> buffer)
 # ---------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class EpisodeLimits:
+    """What the run's env allows an episode to be: its sizes, its longest length, its largest message."""
+
+    obs_dim: int
+    act_dim: int
+    max_steps: int = 100_000
+    max_bytes: int = DEFAULT_MAX_EPISODE_BYTES
 
 
 @dataclass
@@ -214,91 +244,87 @@ class Episode:
     def length(self) -> int:
         return int(self.actions.shape[0])
 
+    def encode(self) -> bytes:
+        return _pack({
+            "kind": "episode",
+            "actor_id": int(self.actor_id),
+            "incarnation": int(self.incarnation),
+            "seq": int(self.seq),
+            "policy_version": int(self.policy_version),
+            "episode_return": float(self.episode_return),
+            "length": self.length,
+            "terminated": bool(self.terminated),
+            "truncated": bool(self.truncated),
+            "obs": pack_array(np.asarray(self.obs, dtype="<f4")),
+            "actions": pack_array(np.asarray(self.actions, dtype="<f4")),
+            "rewards": pack_array(np.asarray(self.rewards, dtype="<f4")),
+        })
 
-class EpisodeCodec:
-    """Encodes episodes and validates every incoming one against the run's env."""
-
-    def __init__(
-        self,
-        obs_dim: int,
-        act_dim: int,
-        max_steps: int = 100_000,
-        max_bytes: int = DEFAULT_MAX_EPISODE_BYTES,
-    ) -> None:
-        self.obs_dim = obs_dim
-        self.act_dim = act_dim
-        self.max_steps = max_steps
-        self.max_bytes = max_bytes
-
-    @staticmethod
-    def encode(ep: Episode) -> bytes:
-        return msgpack.packb(
-            {
-                "v": SCHEMA_VERSION,
-                "kind": "episode",
-                "actor_id": int(ep.actor_id),
-                "incarnation": int(ep.incarnation),
-                "seq": int(ep.seq),
-                "policy_version": int(ep.policy_version),
-                "episode_return": float(ep.episode_return),
-                "length": ep.length,
-                "terminated": bool(ep.terminated),
-                "truncated": bool(ep.truncated),
-                "obs": pack_array(np.asarray(ep.obs, dtype="<f4")),
-                "actions": pack_array(np.asarray(ep.actions, dtype="<f4")),
-                "rewards": pack_array(np.asarray(ep.rewards, dtype="<f4")),
-            },
-            use_bin_type=True,
-        )
-
-    def decode(self, payload: bytes) -> Episode:
-        """Return the episode or raise `ProtocolError` naming the first problem found."""
-        msg = _unpack_map(payload, self.max_bytes)
-        if msg.get("kind") != "episode":
-            raise ProtocolError("bad_field", f"kind is {msg.get('kind')!r}, expected 'episode'")
-        actor_id = _get(msg, "actor_id", int)
-        seq = _get(msg, "seq", int)
-        version = _get(msg, "policy_version", int)
-        ret = _get(msg, "episode_return", (float, int))
-        length = _get(msg, "length", int)
-        terminated = _get(msg, "terminated", bool)
-        truncated = _get(msg, "truncated", bool)
-        if actor_id < 0 or seq < 0 or version < -1:
-            raise ProtocolError("bad_field", "actor_id and seq must be >= 0 and policy_version >= -1")
+    @classmethod
+    def decode(cls, payload: bytes, limits: EpisodeLimits) -> "Episode":
+        """The episode, valid for `limits` (`validate_episode`), or `ProtocolError` naming the first problem."""
+        msg = _unpack_kind(payload, "episode", limits.max_bytes)
+        length = _get(msg, "length", int)  # what the message claims, checked before its arrays are read
         if length <= 0:
             raise ProtocolError("empty", f"episode has length {length}; an episode needs at least one step")
-        if length > self.max_steps:
-            raise ProtocolError("too_long", f"episode has {length} steps, the limit is {self.max_steps}")
-        if not (terminated or truncated):
-            raise ProtocolError("not_finished", "episode is neither terminated nor truncated")
-        obs = unpack_array(_get(msg, "obs", (list, tuple)), "obs", "<f4")
-        actions = unpack_array(_get(msg, "actions", (list, tuple)), "actions", "<f4")
-        rewards = unpack_array(_get(msg, "rewards", (list, tuple)), "rewards", "<f4")
-        if obs.ndim != 2 or actions.ndim != 2 or rewards.ndim != 1:
-            raise ProtocolError("bad_shape", "obs and actions must be 2-D, rewards 1-D")
-        if obs.shape[1] != self.obs_dim:
-            raise ProtocolError("obs_dim", f"observation size {obs.shape[1]} does not match the run's env ({self.obs_dim})")
-        if actions.shape[1] != self.act_dim:
-            raise ProtocolError("act_dim", f"action size {actions.shape[1]} does not match the run's env ({self.act_dim})")
-        if obs.shape[0] != length + 1 or actions.shape[0] != length or rewards.shape[0] != length:
-            raise ProtocolError(
-                "length_mismatch",
-                f"length {length} needs {length + 1} observations and {length} actions and rewards, "
-                f"got {obs.shape[0]}, {actions.shape[0]}, {rewards.shape[0]}",
-            )
-        if not (np.isfinite(obs).all() and np.isfinite(actions).all() and np.isfinite(rewards).all()):
-            raise ProtocolError("non_finite", "episode contains NaN or infinite values")
-        if not math.isfinite(ret):
-            raise ProtocolError("non_finite", "episode_return is NaN or infinite")
-        if np.abs(actions).max() > 1.0 + 1e-5:
-            raise ProtocolError("action_range", "actions must be the policy's squashed outputs in [-1, 1]")
-        total = float(rewards.sum(dtype=np.float64))
-        if abs(total - ret) > 1e-3 * max(1.0, abs(ret)):
-            raise ProtocolError("return_mismatch", f"episode_return {ret} differs from the sum of rewards {total}")
-        incarnation = msg.get("incarnation", 0)
-        if not isinstance(incarnation, int) or isinstance(incarnation, bool) or not 0 <= incarnation < 2**63:
-            raise ProtocolError("bad_field", "field 'incarnation' must be an int in [0, 2**63)")
-        return Episode(actor_id, seq, version, float(ret), terminated, truncated, obs, actions, rewards, incarnation)
+        if length > limits.max_steps:
+            raise ProtocolError("too_long", f"episode has {length} steps, the limit is {limits.max_steps}")
+        incarnation = msg.get("incarnation", 0)  # absent from episodes of actors before 0.2
+        if not isinstance(incarnation, int) or isinstance(incarnation, bool):
+            raise ProtocolError("bad_field", "field 'incarnation' must be an int")
+        ep = cls(
+            _get(msg, "actor_id", int), _get(msg, "seq", int), _get(msg, "policy_version", int),
+            float(_get(msg, "episode_return", (float, int))), _get(msg, "terminated", bool),
+            _get(msg, "truncated", bool),
+            unpack_array(_get(msg, "obs", (list, tuple)), "obs", "<f4"),
+            unpack_array(_get(msg, "actions", (list, tuple)), "actions", "<f4"),
+            unpack_array(_get(msg, "rewards", (list, tuple)), "rewards", "<f4"),
+            incarnation,
+        )
+        if ep.actions.ndim == 2 and ep.actions.shape[0] != length:
+            raise ProtocolError("length_mismatch", f"length {length} but {ep.actions.shape[0]} actions")
+        validate_episode(ep, limits)
+        return ep
+
+
+def validate_episode(ep: Episode, limits: EpisodeLimits) -> None:
+    """What a valid episode is, for the network and for demonstration files alike.
+
+    Raise `ProtocolError` with the first problem: every number storable (ids and
+    versions in int64) and finite, the arrays shaped for the run's env and for each
+    other, at least one and at most `limits.max_steps` steps, actions in [-1, 1],
+    a return equal to the sum of the rewards, and an end (terminated or truncated).
+    """
+    for name, value, low in (("actor_id", ep.actor_id, 0), ("seq", ep.seq, 0), ("policy_version", ep.policy_version, -1),
+                             ("incarnation", ep.incarnation, 0)):
+        if not low <= value <= INT64_MAX:
+            raise ProtocolError("bad_field", f"field {name!r} is {value}, outside [{low}, 2**63)")
+    obs, actions, rewards = ep.obs, ep.actions, ep.rewards
+    if obs.ndim != 2 or actions.ndim != 2 or rewards.ndim != 1:
+        raise ProtocolError("bad_shape", "obs and actions must be 2-D, rewards 1-D")
+    if obs.shape[1] != limits.obs_dim:
+        raise ProtocolError("obs_dim", f"observation size {obs.shape[1]} does not match the run's env ({limits.obs_dim})")
+    if actions.shape[1] != limits.act_dim:
+        raise ProtocolError("act_dim", f"action size {actions.shape[1]} does not match the run's env ({limits.act_dim})")
+    length = ep.length
+    if length <= 0:
+        raise ProtocolError("empty", f"episode has length {length}; an episode needs at least one step")
+    if length > limits.max_steps:
+        raise ProtocolError("too_long", f"episode has {length} steps, the limit is {limits.max_steps}")
+    if obs.shape[0] != length + 1 or rewards.shape[0] != length:
+        raise ProtocolError("length_mismatch", f"length {length} needs {length + 1} observations and {length} "
+                                               f"rewards, got {obs.shape[0]} and {rewards.shape[0]}")
+    if not (np.isfinite(obs).all() and np.isfinite(actions).all() and np.isfinite(rewards).all()):
+        raise ProtocolError("non_finite", "episode contains NaN or infinite values")
+    if not math.isfinite(ep.episode_return):
+        raise ProtocolError("non_finite", "episode_return is NaN or infinite")
+    if np.abs(actions).max() > 1.0 + 1e-5:
+        raise ProtocolError("action_range", "actions must be the policy's squashed outputs in [-1, 1]")
+    total = float(rewards.sum(dtype=np.float64))
+    if abs(total - ep.episode_return) > 1e-3 * max(1.0, abs(ep.episode_return)):
+        raise ProtocolError("return_mismatch", f"episode_return {ep.episode_return} differs from the sum of rewards {total}")
+    if not (ep.terminated or ep.truncated):
+        raise ProtocolError("not_finished", "episode is neither terminated nor truncated")
 
 
 # ---------------------------------------------------------------------------
@@ -321,43 +347,36 @@ class Weights:
         """The actors' rule: take weights that are newer than `current` or come from another learner incarnation."""
         return current is None or self.incarnation != current.incarnation or self.version > current.version
 
+    def encode(self) -> bytes:
+        return _pack({
+            "kind": "weights",
+            "version": int(self.version),
+            "incarnation": int(self.incarnation),
+            "sent_at": float(self.sent_at),
+            "arch": dict(self.arch),
+            "params": {k: pack_array(np.asarray(a, dtype="<f4")) for k, a in self.params.items()},
+        })
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "Weights":
+        msg = _unpack_kind(payload, "weights")
+        version = _get(msg, "version", int)
+        arch = _get(msg, "arch", dict)
+        raw = _get(msg, "params", dict)
+        params = {str(k): unpack_array(v, f"params.{k}", "<f4") for k, v in raw.items()}
+        for k, a in params.items():
+            if not np.isfinite(a).all():
+                raise ProtocolError("non_finite", f"weights {k!r} contain NaN or infinite values")
+        sent_at = msg.get("sent_at", 0.0)
+        incarnation = msg.get("incarnation", 0)  # absent from weights of learners before 0.2
+        if not isinstance(incarnation, int) or isinstance(incarnation, bool) or not 0 <= incarnation <= INT64_MAX:
+            raise ProtocolError("bad_field", "field 'incarnation' must be an int in [0, 2**63)")
+        return cls(version, params, arch, float(sent_at) if isinstance(sent_at, (int, float)) else 0.0, incarnation)
+
 
 def new_incarnation() -> int:
     """A random id for a process whose counters start again when it restarts (actors, learners)."""
     return int.from_bytes(os.urandom(7), "little")
-
-
-def encode_weights(w: Weights) -> bytes:
-    return msgpack.packb(
-        {
-            "v": SCHEMA_VERSION,
-            "kind": "weights",
-            "version": int(w.version),
-            "incarnation": int(w.incarnation),
-            "sent_at": float(w.sent_at),
-            "arch": dict(w.arch),
-            "params": {k: pack_array(np.asarray(a, dtype="<f4")) for k, a in w.params.items()},
-        },
-        use_bin_type=True,
-    )
-
-
-def decode_weights(payload: bytes) -> Weights:
-    msg = _unpack_map(payload)
-    if msg.get("kind") != "weights":
-        raise ProtocolError("bad_field", f"kind is {msg.get('kind')!r}, expected 'weights'")
-    version = _get(msg, "version", int)
-    arch = _get(msg, "arch", dict)
-    raw = _get(msg, "params", dict)
-    params = {str(k): unpack_array(v, f"params.{k}", "<f4") for k, v in raw.items()}
-    for k, a in params.items():
-        if not np.isfinite(a).all():
-            raise ProtocolError("non_finite", f"weights {k!r} contain NaN or infinite values")
-    sent_at = msg.get("sent_at", 0.0)
-    incarnation = msg.get("incarnation", 0)  # absent from weights of learners before 0.2
-    if not isinstance(incarnation, int) or isinstance(incarnation, bool) or not 0 <= incarnation < 2**63:
-        raise ProtocolError("bad_field", "field 'incarnation' must be an int in [0, 2**63)")
-    return Weights(version, params, arch, float(sent_at) if isinstance(sent_at, (int, float)) else 0.0, incarnation)
 
 
 # ---------------------------------------------------------------------------
@@ -381,13 +400,13 @@ class SampleRequest:
     recent_window: int = 0
 
     def encode(self) -> bytes:
-        msg: dict[str, Any] = {"v": SCHEMA_VERSION, "kind": "sample", "batches": self.batches, "batch_size": self.batch_size}
+        msg: dict[str, Any] = {"kind": "sample", "batches": self.batches, "batch_size": self.batch_size}
         if self.disc_batch_size:
             msg |= {"disc_batch_size": self.disc_batch_size, "recent_window": self.recent_window}
-        return msgpack.packb(msg)
+        return _pack(msg)
 
-    @staticmethod
-    def decode(payload: bytes) -> "SampleRequest":
+    @classmethod
+    def decode(cls, payload: bytes) -> "SampleRequest":
         msg = _unpack_map(payload, max_bytes=4096)
         batches = _get(msg, "batches", int)
         batch_size = _get(msg, "batch_size", int)
@@ -399,85 +418,163 @@ class SampleRequest:
         window = _get(msg, "recent_window", int) if disc else 0
         if not 0 <= disc <= MAX_BATCH_SIZE:
             raise ProtocolError("bad_request", f"disc_batch_size={disc} is outside [0, {MAX_BATCH_SIZE}]")
-        if disc and window < 1:
-            raise ProtocolError("bad_request", f"recent_window={window} must be >= 1 with disc_batch_size")
-        return SampleRequest(batches, batch_size, disc, window)
+        if disc and not 1 <= window <= INT64_MAX:
+            raise ProtocolError("bad_request", f"recent_window={window} must be in [1, 2**63) with disc_batch_size")
+        return cls(batches, batch_size, disc, window)
 
 
-BATCH_FIELDS = {
-    "obs": "<f4",
-    "actions": "<f4",
-    "rewards": "<f4",
-    "next_obs": "<f4",
-    "terminated": "|u1",
-    "truncated": "|u1",
-    "policy_version": "<i8",
-}
-#: GASIL's discriminator rows, in a reply only when the request asked for them
-#: (`disc_batch_size` rows per batch each): D_E transitions and recent D_O transitions.
-DISC_FIELDS = {
-    "disc_expert_obs": "<f4",
-    "disc_expert_actions": "<f4",
-    "disc_recent_obs": "<f4",
-    "disc_recent_actions": "<f4",
-}
+A = TypeVar("A")  # an array type: numpy arrays on the wire and in the buffer, torch tensors in the learner
+R = TypeVar("R", bound="_Rows")
+
+
+class _Rows:
+    """Arrays of equal length, one per dataclass field: converted together, sliced together."""
+
+    def map(self: R, fn: Callable[[Any], Any]) -> R:
+        """The same rows with `fn` applied to every array (to tensors on a device, say)."""
+        return type(self)(**{f.name: fn(getattr(self, f.name)) for f in fields(self)})  # type: ignore[arg-type]
+
+    def rows(self: R, b: int, size: int) -> R:
+        """Rows [b * size, (b + 1) * size): batch b of batches of `size` rows."""
+        s = slice(b * size, (b + 1) * size)
+        return self.map(lambda a: a[s])
+
+
+@dataclass
+class Batch(_Rows, Generic[A]):
+    """Rows of transitions, one update's batch after another (`rows(b, size)` is batch b).
+
+    `rewards` are the labels the algorithm trains on (set by the buffer's labeller);
+    `terminated`/`truncated` are 1 on an episode's last row when it ended that way;
+    `policy_version` is the version of the weights that acted (-1: before any).
+    """
+
+    obs: A
+    actions: A
+    rewards: A
+    next_obs: A
+    terminated: A
+    truncated: A
+    policy_version: A
+
+    #: dtype of each field on the wire
+    WIRE = {"obs": "<f4", "actions": "<f4", "rewards": "<f4", "next_obs": "<f4", "terminated": "|u1",
+            "truncated": "|u1", "policy_version": "<i8"}
+
+    @classmethod
+    def empty(cls, n: int, obs_dim: int, act_dim: int) -> "Batch[np.ndarray]":
+        return cls(np.empty((n, obs_dim), np.float32), np.empty((n, act_dim), np.float32), np.empty(n, np.float32),
+                   np.empty((n, obs_dim), np.float32), np.empty(n, np.uint8), np.empty(n, np.uint8),
+                   np.empty(n, np.int64))
+
+
+@dataclass
+class DiscriminatorRows(_Rows, Generic[A]):
+    """GASIL's discriminator data: D_E (s, a) pairs (label 1) and as many from the newest D_O episodes (label 0)."""
+
+    expert_obs: A
+    expert_actions: A
+    recent_obs: A
+    recent_actions: A
+
+    WIRE = {"disc_expert_obs": "<f4", "disc_expert_actions": "<f4", "disc_recent_obs": "<f4",
+            "disc_recent_actions": "<f4"}
 
 
 @dataclass
 class BatchReply:
-    """`status` is `ok` (arrays hold batches*batch_size rows) or `not_ready` (see `reason`)."""
+    """`status` is `ok` (`batch` holds `meta["batches"]` batches of `meta["batch_size"]` rows, and
+    `disc` the discriminator's rows if they were asked for) or `not_ready` (see `reason`)."""
 
     status: str
     meta: dict[str, Any]
-    arrays: dict[str, np.ndarray] = field(default_factory=dict)
+    batch: Batch | None = None
+    disc: DiscriminatorRows | None = None
     reason: str = ""
     retry_after_ms: int = 0
 
     def encode(self) -> bytes:
-        msg: dict[str, Any] = {"v": SCHEMA_VERSION, "kind": "batch", "status": self.status, "meta": self.meta}
+        msg: dict[str, Any] = {"kind": "batch", "status": self.status, "meta": self.meta}
         if self.status == "ok":
-            msg["arrays"] = {k: pack_array(np.asarray(self.arrays[k], dtype=dt)) for k, dt in BATCH_FIELDS.items()}
-            msg["arrays"] |= {k: pack_array(np.asarray(self.arrays[k], dtype=dt))
-                              for k, dt in DISC_FIELDS.items() if k in self.arrays}
+            assert self.batch is not None
+            msg["arrays"] = {k: pack_array(np.asarray(getattr(self.batch, k), dtype=dt)) for k, dt in Batch.WIRE.items()}
+            if self.disc is not None:
+                msg["arrays"] |= {k: pack_array(np.asarray(getattr(self.disc, k.removeprefix("disc_")), dtype=dt))
+                                  for k, dt in DiscriminatorRows.WIRE.items()}
         else:
             msg["reason"] = self.reason
             msg["retry_after_ms"] = int(self.retry_after_ms)
-        return msgpack.packb(msg, use_bin_type=True)
+        return _pack(msg)
 
-    @staticmethod
-    def decode(payload: bytes) -> "BatchReply":
+    @classmethod
+    def decode(cls, payload: bytes) -> "BatchReply":
         msg = _unpack_map(payload)
         status = _get(msg, "status", str)
         meta = _get(msg, "meta", dict)
         if status == "ok":
             raw = _get(msg, "arrays", dict)
-            arrays = {k: unpack_array(raw.get(k), k, dt) for k, dt in BATCH_FIELDS.items()}
-            arrays |= {k: unpack_array(raw[k], k, dt) for k, dt in DISC_FIELDS.items() if k in raw}
-            return BatchReply("ok", meta, arrays)
-        return BatchReply(status, meta, reason=str(msg.get("reason", "")), retry_after_ms=int(msg.get("retry_after_ms", 0)))
+            batch = Batch(**{k: unpack_array(raw.get(k), k, dt) for k, dt in Batch.WIRE.items()})
+            disc = None
+            if "disc_expert_obs" in raw:
+                disc = DiscriminatorRows(**{k.removeprefix("disc_"): unpack_array(raw.get(k), k, dt)
+                                            for k, dt in DiscriminatorRows.WIRE.items()})
+            return cls("ok", meta, batch, disc)
+        retry = msg.get("retry_after_ms", 0)
+        return cls(status, meta, reason=str(msg.get("reason", "")),
+                   retry_after_ms=retry if isinstance(retry, int) and 0 <= retry <= 60_000 else 0)
 
 
 # ---------------------------------------------------------------------------
-# Control and stats
+# Control (buffer -> actors; anyone -> everyone) and stats (anyone -> monitors)
 # ---------------------------------------------------------------------------
 
 
-def encode_control(kind: str, **fields: Any) -> bytes:
-    return msgpack.packb({"v": SCHEMA_VERSION, "kind": kind, **fields})
+@dataclass(frozen=True)
+class ThrottleNotice:
+    """The buffer's rate limiter to the actors: pause, or go on."""
+
+    paused: bool
+
+    def encode(self) -> bytes:
+        return _pack({"kind": "throttle", "paused": bool(self.paused)})
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "ThrottleNotice":
+        return cls(_get(_unpack_kind(payload, "throttle", max_bytes=65536), "paused", bool))
 
 
-def decode_control(payload: bytes, kind: str) -> dict:
-    msg = _unpack_map(payload, max_bytes=65536)
-    if msg.get("kind") != kind:
-        raise ProtocolError("bad_field", f"kind is {msg.get('kind')!r}, expected {kind!r}")
-    return msg
+@dataclass(frozen=True)
+class ShutdownNotice:
+    """The run is over (the learner finished, or the launcher stops it)."""
+
+    reason: str
+
+    def encode(self) -> bytes:
+        return _pack({"kind": "shutdown", "reason": self.reason})
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "ShutdownNotice":
+        return cls(str(_unpack_kind(payload, "shutdown", max_bytes=65536).get("reason", "")))
 
 
-STATS_ENCODING = "application/json"
+@dataclass
+class Stats:
+    """A component's stats: a flat JSON object (null for 'no value yet'), readable by any Zenoh client."""
 
+    values: dict[str, Any]
 
-def encode_stats(stats: Mapping[str, Any]) -> bytes:
-    return json.dumps(stats, separators=(",", ":"), allow_nan=False, default=_json_default).encode()
+    def encode(self) -> bytes:
+        return json.dumps(self.values, separators=(",", ":"), allow_nan=False, default=_json_default).encode()
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "Stats":
+        try:
+            values = json.loads(payload)
+        except (ValueError, UnicodeDecodeError) as e:
+            raise ProtocolError("not_json", f"stats are not JSON ({e})") from None
+        if not isinstance(values, dict):
+            raise ProtocolError("not_a_map", "stats are not a JSON object")
+        return cls(values)
 
 
 def _json_default(o: Any) -> Any:

@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from silcr.common import protocol as P
+from silcr.common import seeds
 from silcr.common.clients import Shutdown
 from silcr.common.config import Config
 from silcr.common.lifecycle import StopFlag, setup_logging
@@ -34,8 +35,6 @@ from silcr.deploy.monitor import StatsSnapshot
 log = logging.getLogger("train")
 
 STOP_GRACE_S = 20.0
-# Added to a restarted actor's seed: far from base + actor id for any realistic actor count.
-RESTART_SEED_STRIDE = 1_000_003
 
 
 def component_main(role: str, cfg_dict: dict[str, Any], log_path: str) -> None:
@@ -225,7 +224,7 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     if role in ("buffer", "learner"):
                         acfg = Config(**acfg.to_dict() | {"resume": True})
                     else:  # a new seed, or the restarted actor replays its predecessor's episodes
-                        acfg = Config(**acfg.to_dict() | {"seed": acfg.seed + RESTART_SEED_STRIDE})
+                        acfg = Config(**acfg.to_dict() | {"seed": seeds.restarted(acfg.seed)})
                     run.start(role, acfg, name)
                     continue
                 if p.exitcode == 0 and name != "learner":

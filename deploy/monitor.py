@@ -30,8 +30,8 @@ class StatsSnapshot:
     def on_sample(self, sample: Any) -> None:
         key = str(sample.key_expr)
         try:
-            data = json.loads(sample.payload.to_bytes())
-        except ValueError:
+            data = P.Stats.decode(sample.payload.to_bytes()).values
+        except P.ProtocolError:
             with self._lock:
                 self.malformed += 1
             return

@@ -34,19 +34,17 @@ import time
 
 from silcr.actor.service import Actor, policy_factory, random_initial_weights
 from silcr.buffer_service import snapshot
-from silcr.buffer_service.service import checkpoint_path, open_replay, write_final_checkpoint
+from silcr.buffer_service.replay import checkpoint_path, open_replay
+from silcr.common import seeds
 from silcr.common.clients import InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.lifecycle import StopFlag
+from silcr.common.schedule import Every
 from silcr.deploy.console import TrainingDisplay
-from silcr.learner.service import Learner
+from silcr.learner.learner import Learner
 
 log = logging.getLogger("train")
-
-# Added to the actors' seeds after a resume, once per transition already collected,
-# so that resumed actors do not replay the episodes of the first start.
-RESUME_SEED_STRIDE = 1_000_003
 
 
 def run_single_process(cfg: Config) -> int:
@@ -69,20 +67,18 @@ def run_single_process(cfg: Config) -> int:
     learner = Learner(cfg, spec, board)
     learner.start()  # the first weights are on the board before any actor acts
     actor_cfg = cfg
-    if replay.transitions_received:
-        actor_cfg = Config(**cfg.to_dict() | {"seed": cfg.seed + RESUME_SEED_STRIDE * replay.transitions_received})
+    if replay.transitions_received:  # resumed actors must not replay the episodes of the first start
+        actor_cfg = Config(**cfg.to_dict() | {"seed": seeds.resumed(cfg.seed, replay.transitions_received)})
     actors = [Actor(actor_cfg, spec, i, InProcessEpisodeWriter(replay),
-                    board.client(policy_factory(spec), random_initial_weights(actor_cfg, spec, actor_cfg.seed + i)()))
+                    board.client(policy_factory(spec),
+                                 random_initial_weights(actor_cfg, spec, seeds.actor(actor_cfg.seed, i))()))
               for i in range(cfg.actors)]
     stream = InProcessBatchStream(replay, learner.sample_request(), stop)
-    writer = snapshot.BackgroundWriter(checkpoint_path(cfg))
-    if snap is not None and "writer" in snap.parts:
-        writer.restore(snap.parts["writer"])
-    interval = cfg.buffer_checkpoint_interval
-    next_checkpoint = time.monotonic() + interval if interval > 0 else float("inf")
+    checkpoints = snapshot.PeriodicCheckpoints(checkpoint_path(cfg), cfg.buffer_checkpoint_interval)
+    checkpoints.restore_parts(snap)
     polled = [0] * len(actors)
     finished = False
-    next_show = 0.0
+    show = Every(cfg.stats_interval)
     with TrainingDisplay(cfg.total_steps) as display:
         while not stop.is_set():
             collecting = replay.transitions_received < cfg.total_steps
@@ -100,24 +96,21 @@ def run_single_process(cfg: Config) -> int:
                 finished = True
                 break
             now = time.monotonic()
-            if now >= next_checkpoint:
-                writer.submit(snapshot.take(replay, writer=writer))
-                next_checkpoint = now + interval
-            if now >= next_show:
+            checkpoints.maybe(replay, now)
+            if show.due(now):
                 stats = learner.stats()
                 learner.record_scalars(stats)
                 display.show(replay.transitions_received, stats)
-                next_show = now + cfg.stats_interval
         display.show(replay.transitions_received, learner.stats())
     # Ctrl-C from here on would leave half-written checkpoints behind the atomic renames: finish first.
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     learner.finish(finished)
-    write_final_checkpoint(replay, writer)
+    checkpoints.final(replay)
     for actor in actors:
         actor.close()
     if finished:
         print(f"silcr train: done. progress: {run_dir / 'progress.csv'}; TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
         return 0
-    print(f"silcr train: stopped ({stop.reason}) at {learner.updates} updates; checkpoints in {run_dir / 'checkpoints'}",
+    print(f"silcr train: stopped ({stop.reason}) at {learner.books.updates} updates; checkpoints in {run_dir / 'checkpoints'}",
           file=sys.stderr)
     return 130

@@ -40,6 +40,6 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
                               f"code when loaded; refused ({what})") from None
     except Exception as e:  # torch raises several types for truncated or foreign files
         raise CheckpointError(f"checkpoint {path} is unreadable or corrupt ({type(e).__name__}: {e})") from None
-    if not isinstance(payload, dict) or "sac" not in payload or "counters" not in payload:
+    if not isinstance(payload, dict) or not isinstance(payload.get("sac"), dict) or "counters" not in payload:
         raise CheckpointError(f"{path} is not a silcr learner checkpoint")
     return payload

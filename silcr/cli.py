@@ -13,7 +13,8 @@ from __future__ import annotations
 import argparse
 import sys
 
-from silcr.common.config import RANKED_ALGOS, ConfigError, Config, add_options, resolve
+from silcr.common.algorithms import algorithm
+from silcr.common.config import ConfigError, Config, add_options, resolve
 
 ROLES_HELP = {
     "train": "run router, buffer service, learner and actors locally until the step budget is spent",
@@ -110,7 +111,8 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
             spec = EnvSpec.of(cfg.env)
         except ValueError as e:
             raise ConfigError("--env", str(e)) from None
-        if cfg.algo in RANKED_ALGOS and role in ("train", "buffer") and spec.time_limit and cfg.expert_capacity < spec.time_limit:
+        if (algorithm(cfg.algo).ranks_own_episodes and role in ("train", "buffer") and spec.time_limit
+                and cfg.expert_capacity < spec.time_limit):
             # D_E admits whole episodes: one that never fits leaves it empty, and the learner waits forever.
             raise ConfigError("--expert-capacity", f"{cfg.expert_capacity} transitions cannot hold one whole episode of "
                                                    f"{cfg.env}, which runs up to {spec.time_limit} steps; D_E would stay "
@@ -182,7 +184,7 @@ def main(argv: list[str] | None = None) -> int:
         cfg = resolve(args, role)
         _check_runtime_options(cfg, role)
         if role == "learner" and cfg.device == "cuda":
-            from silcr.learner.service import pick_device
+            from silcr.learner.update import pick_device
 
             try:
                 pick_device("cuda")

@@ -23,7 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.common.config import ENV_REWARD_ALGOS, Config
+from silcr.common.algorithms import ALGORITHM_OPTIONS, ALGORITHMS
+from silcr.common.config import Config
 
 
 @dataclass
@@ -78,23 +79,20 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     keep = np.append(steps[:-1] <= later_min[1:], True)
     steps, values = steps[keep], values[keep]
     algo = cfg.get("algo", "?")
-    # SILCR and SQIL ignore the env's reward; SAC's and GASIL's labels say which one they had.
-    label = f"{algo}-{cfg.get('reward', '')}" if algo in ENV_REWARD_ALGOS else algo
-    if algo in ("silcr", "gasil") and cfg.get("expert_capacity", 50_000) != 50_000:
+    spec = ALGORITHMS.get(algo)
+    # Only the algorithms that learn from the env's reward say which one they had.
+    label = f"{algo}-{cfg.get('reward', '')}" if spec is not None and spec.uses_env_reward else algo
+    if spec is not None and spec.ranks_own_episodes and cfg["expert_capacity"] != _DEFAULTS["expert_capacity"]:
         label += f" (M={cfg['expert_capacity']:.0e})".replace("e+0", "e")  # the M ablation: one curve per M
     past = [float(r["env_steps"]) for r in all_rows if (r.get("q_bound_exceeded") or "0") not in ("", "0")]
     return RunCurve(path, cfg.get("env", "?"), label, int(cfg.get("seed", 0)), steps, values, cfg,
                     "q_bound_exceeded" in all_rows[0], past[0] if past else None)
 
 
-#: Settings that only some algorithms use: other runs carry their defaults, which say nothing about them.
-ONLY_FOR = {"expert_admission": {"silcr"}, "expert_init": {"silcr"},
-            **{k: {"gasil"} for k in ("gasil_alpha", "gasil_reward", "disc_hidden", "disc_lr", "disc_grad_penalty",
-                                      "disc_batch_size", "disc_interval", "disc_warmup", "recent_window")}}
-
-
 def _applies(key: str, run: RunCurve) -> bool:
-    return key not in ONLY_FOR or run.config.get("algo") in ONLY_FOR[key]
+    """Settings that only some algorithms use: other runs carry their defaults, which say nothing about them."""
+    spec = ALGORITHMS.get(run.config.get("algo", ""))
+    return key not in ALGORITHM_OPTIONS or (spec is not None and key in spec.options)
 
 
 def distinguish(runs: list[RunCurve]) -> list[RunCurve]:

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from silcr.buffer_service import snapshot
-from silcr.buffer_service.service import ReplayState
+from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
@@ -27,7 +27,7 @@ def _state(spec, **kw):
 def _fill(state, n=30, first_seq=0):
     rng = np.random.default_rng(first_seq)
     for i in range(first_seq, first_seq + n):
-        state.ingest(P.EpisodeCodec.encode(make_episode(int(rng.integers(5, 15)), ret=float(rng.normal()), seq=i, start=i * 100)))
+        state.ingest(make_episode(int(rng.integers(5, 15)), ret=float(rng.normal()), seq=i, start=i * 100).encode())
     state.answer(P.SampleRequest(2, 16).encode())
 
 
@@ -44,7 +44,7 @@ def test_snapshot_restores_both_tables_and_counters(tmp_path, spec):
     back = _state(spec)
     snapshot.restore(path, back)
     assert [e.seq for e in back.fifo.episodes()] == [e.seq for e in state.fifo.episodes()]
-    assert sorted(back.heap.returns()) == sorted(state.heap.returns())
+    assert sorted([e.episode_return for e in back.heap.episodes()]) == sorted([e.episode_return for e in state.heap.episodes()])
     assert len(back.heap) == len(state.heap) and len(back.fifo) == len(state.fifo)
     for name in ("episodes_received", "transitions_received", "batches_served", "last_seq"):
         assert getattr(back, name) == getattr(state, name)
@@ -53,16 +53,17 @@ def test_snapshot_restores_both_tables_and_counters(tmp_path, spec):
     for a, b in zip(state.fifo.episodes(), back.fifo.episodes()):
         np.testing.assert_array_equal(a.obs, b.obs)
         np.testing.assert_array_equal(a.actions, b.actions)
-    for a, b in zip(sorted(state.heap.entries(), key=lambda e: e[1]), sorted(back.heap.entries(), key=lambda e: e[1])):
-        np.testing.assert_array_equal(a[2].obs, b[2].obs)
+    entries = [sorted(s.heap.state()["entries"], key=lambda e: e[2]) for s in (state, back)]  # by admission order
+    for a, b in zip(*entries):
+        np.testing.assert_array_equal(a[0].obs, b[0].obs)
     # The same eviction order: the next better episode evicts the same one in both.
-    ep = P.EpisodeCodec.encode(make_episode(10, ret=5.0, seq=99, start=1e4))
+    ep = make_episode(10, ret=5.0, seq=99, start=1e4).encode()
     state.ingest(ep)
     back.ingest(ep)
-    assert sorted(back.heap.returns()) == sorted(state.heap.returns())
+    assert sorted([e.episode_return for e in back.heap.episodes()]) == sorted([e.episode_return for e in state.heap.episodes()])
     # An episode sent before the checkpoint is still recognised as a duplicate.
     with pytest.raises(P.ProtocolError, match="again"):
-        back.ingest(P.EpisodeCodec.encode(make_episode(5, seq=3)))
+        back.ingest(make_episode(5, seq=3).encode())
 
 
 def test_corrupt_or_foreign_snapshot_is_refused(tmp_path, spec):
@@ -93,7 +94,7 @@ def test_a_failed_write_leaves_the_previous_checkpoint(tmp_path, spec, monkeypat
     def crash(ep):
         raise OSError("disk full")
 
-    monkeypatch.setattr(P.EpisodeCodec, "encode", staticmethod(crash))
+    monkeypatch.setattr(P.Episode, "encode", crash)
     with pytest.raises(OSError):
         snapshot.write(path, snapshot.take(state))
     assert path.read_bytes() == before
@@ -108,7 +109,7 @@ def test_snapshot_taken_then_overwritten_still_writes_what_was_taken(tmp_path, s
     taken = {(e.seq, bytes(e.obs.tobytes())) for e in snap.episodes}
     # enough better episodes to evict every D_O and D_E episode (ring reuse, D_E compaction)
     for i in range(100, 200):
-        state.ingest(P.EpisodeCodec.encode(make_episode(10, ret=10.0 + i, seq=i, start=i * 100)))
+        state.ingest(make_episode(10, ret=10.0 + i, seq=i, start=i * 100).encode())
     assert not {e.seq for e in state.fifo.episodes() + state.heap.episodes()} & {s for s, _ in taken}
     path = tmp_path / "buffer.ckpt"
     snapshot.write(path, snap)
@@ -118,7 +119,7 @@ def test_snapshot_taken_then_overwritten_still_writes_what_was_taken(tmp_path, s
 
 
 def test_every_counter_the_stats_publish_survives_a_restore(tmp_path, spec):
-    from silcr.buffer_service.service import Inbox
+    from silcr.common.inbox import Inbox
 
     state = _state(spec)
     _fill(state, 60)  # D_O (200 transitions) evicts; D_E (60) admits, evicts and rejects
@@ -172,12 +173,12 @@ def test_a_version_1_checkpoint_still_loads(tmp_path, spec):
               "limiter": {"inserts": state.limiter.inserts, "samples": state.limiter.samples},
               "last_seq": [[a, inc, seq] for (a, inc), seq in state.last_seq.items()],
               "fifo": [ref(e) for e in state.fifo.episodes()],
-              "heap": [[ref(e), ret, order] for ret, order, e in state.heap.entries()]}
+              "heap": [[ref(e), ret, order] for e, ret, order in state.heap.state()["entries"]]}
     header["n_episodes"] = len(episodes)
     path = tmp_path / "v1.ckpt"
-    path.write_bytes(msgpack.packb(header) + b"".join(msgpack.packb(P.EpisodeCodec.encode(e)) for e in episodes))
+    path.write_bytes(msgpack.packb(header) + b"".join(msgpack.packb(e.encode()) for e in episodes))
     back = _state(spec)
     snapshot.restore(path, back)
     assert [e.seq for e in back.fifo.episodes()] == [e.seq for e in state.fifo.episodes()]
-    assert sorted(back.heap.returns()) == sorted(state.heap.returns())
+    assert sorted([e.episode_return for e in back.heap.episodes()]) == sorted([e.episode_return for e in state.heap.episodes()])
     assert back.transitions_received == state.transitions_received and back.limiter.samples == state.limiter.samples

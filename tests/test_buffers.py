@@ -9,19 +9,18 @@ from hypothesis import strategies as st
 
 from silcr.buffer_service.batches import compose_batches
 from silcr.buffer_service.expert_heap import ExpertHeap
+from silcr.buffer_service.labels import ConstantLabels, EnvLabels
 from silcr.buffer_service.online_fifo import OnlineFifo
+from silcr.common.protocol import Batch
 from tests.conftest import make_episode
 
 
 def _draw(table, n: int, rng) -> tuple[np.ndarray, np.ndarray]:
     """(seq, t) of `n` drawn transitions, for episodes made with `start=100 * seq`."""
-    out = {"obs": np.empty((n, 4), np.float32), "next_obs": np.empty((n, 4), np.float32),
-           "actions": np.empty((n, 1), np.float32), "rewards": np.empty(n, np.float32),
-           "terminated": np.empty(n, np.uint8), "truncated": np.empty(n, np.uint8),
-           "policy_version": np.empty(n, np.int64)}
+    out = Batch.empty(n, 4, 1)
     table.gather(n, rng, out, slice(0, n), True)
-    np.testing.assert_array_equal(out["next_obs"], out["obs"] + 1)
-    v = out["obs"][:, 0].astype(np.int64)
+    np.testing.assert_array_equal(out.next_obs, out.obs + 1)
+    v = out.obs[:, 0].astype(np.int64)
     return v // 100, v % 100
 
 
@@ -75,9 +74,9 @@ def test_heap_admits_while_room_then_only_strictly_better():
     assert len(heap) == 30 and heap.min_return == 1.0
     assert not heap.offer(make_episode(10, ret=1.0, seq=3))  # tie with the lowest: rejected
     assert not heap.offer(make_episode(10, ret=0.5, seq=4))  # worse: rejected
-    assert sorted(heap.returns()) == [1.0, 3.0, 5.0]
+    assert sorted([e.episode_return for e in heap.episodes()]) == [1.0, 3.0, 5.0]
     assert heap.offer(make_episode(10, ret=2.0, seq=5))  # better than the lowest: evicts it
-    assert sorted(heap.returns()) == [2.0, 3.0, 5.0]
+    assert sorted([e.episode_return for e in heap.episodes()]) == [2.0, 3.0, 5.0]
     assert heap.evicted == 1 and heap.rejected == 2 and len(heap) == 30
 
 
@@ -86,7 +85,7 @@ def test_heap_evicts_lowest_until_total_fits():
     for i, r in enumerate([1.0, 2.0, 9.0]):
         heap.offer(make_episode(10, ret=r, seq=i))
     assert heap.offer(make_episode(20, ret=5.0, seq=3))  # needs 20: evicts 1.0 and 2.0
-    assert sorted(heap.returns()) == [5.0, 9.0] and len(heap) == 30
+    assert sorted([e.episode_return for e in heap.episodes()]) == [5.0, 9.0] and len(heap) == 30
 
 
 def test_heap_rejection_never_loses_stored_episodes():
@@ -95,7 +94,7 @@ def test_heap_rejection_never_loses_stored_episodes():
     heap.offer(make_episode(20, ret=9.0, seq=1))
     # Strictly better than 1.0, but evicting only worse episodes frees 10 of the 20 needed.
     assert not heap.offer(make_episode(20, ret=5.0, seq=2))
-    assert sorted(heap.returns()) == [1.0, 9.0] and len(heap) == 30 and heap.evicted == 0
+    assert sorted([e.episode_return for e in heap.episodes()]) == [1.0, 9.0] and len(heap) == 30 and heap.evicted == 0
 
 
 def test_heap_ties_evict_older_first():
@@ -118,7 +117,7 @@ def test_heap_keeps_top_m_under_random_stream():
     returns = rng.normal(size=500)
     for i, r in enumerate(returns):
         heap.offer(make_episode(10, ret=float(r), seq=i))
-    assert sorted(heap.returns()) == pytest.approx(sorted(returns)[-10:], rel=1e-6)
+    assert sorted([e.episode_return for e in heap.episodes()]) == pytest.approx(sorted(returns)[-10:], rel=1e-6)
 
 
 def test_heap_sampling_covers_stored_transitions():
@@ -144,57 +143,57 @@ def _filled(constant: bool = True):
 
 def test_silcr_batches_are_half_online_reward0_half_expert_reward1():
     fifo, heap = _filled()
-    out = compose_batches(fifo, heap, 3, 128, np.random.default_rng(0), True, 4, 1)
-    assert out["obs"].shape == (384, 4) and out["actions"].shape == (384, 1)
+    out = compose_batches(fifo, heap, 3, 128, np.random.default_rng(0), ConstantLabels(), 4, 1)
+    assert out.obs.shape == (384, 4) and out.actions.shape == (384, 1)
     for b in range(3):
         rows = slice(b * 128, (b + 1) * 128)
-        r = out["rewards"][rows]
+        r = out.rewards[rows]
         np.testing.assert_array_equal(r[:64], 0.0)
         np.testing.assert_array_equal(r[64:], 1.0)
         # The expert half comes from the 10 best episodes (returns 10..19, obs start 10000..19000).
-        assert (out["obs"][rows][64:, 0] >= 10_000).all()
+        assert (out.obs[rows][64:, 0] >= 10_000).all()
     # next_obs is the following row of the same episode
-    np.testing.assert_array_equal(out["next_obs"][:, 0], out["obs"][:, 0] + 1)
+    np.testing.assert_array_equal(out.next_obs[:, 0], out.obs[:, 0] + 1)
 
 
 def test_batch_terminal_flags_only_on_last_step():
     fifo, heap = _filled()
-    out = compose_batches(fifo, heap, 20, 128, np.random.default_rng(1), True, 4, 1)
-    t = out["obs"][:, 0] % 1000  # time step within its episode
-    seq = out["obs"][:, 0] // 1000
+    out = compose_batches(fifo, heap, 20, 128, np.random.default_rng(1), ConstantLabels(), 4, 1)
+    t = out.obs[:, 0] % 1000  # time step within its episode
+    seq = out.obs[:, 0] // 1000
     last = t == 9
-    np.testing.assert_array_equal(out["terminated"].astype(bool), last & (seq % 2 == 0))
-    np.testing.assert_array_equal(out["truncated"].astype(bool), last & (seq % 2 == 1))
-    assert out["terminated"].any() and out["truncated"].any()
+    np.testing.assert_array_equal(out.terminated.astype(bool), last & (seq % 2 == 0))
+    np.testing.assert_array_equal(out.truncated.astype(bool), last & (seq % 2 == 1))
+    assert out.terminated.any() and out.truncated.any()
 
 
 def test_batch_flags_when_gymnasium_reports_both_and_policy_versions():
     fifo = OnlineFifo(1000)
     fifo.add(make_episode(3, ret=1.0, seq=0, start=0, terminated=True, truncated=True))
-    out = compose_batches(fifo, None, 1, 64, np.random.default_rng(0), False, 4, 1)
-    last = out["obs"][:, 0] == 2
+    out = compose_batches(fifo, None, 1, 64, np.random.default_rng(0), EnvLabels(), 4, 1)
+    last = out.obs[:, 0] == 2
     assert last.any() and not last.all()
-    np.testing.assert_array_equal(out["terminated"].astype(bool), last)  # termination wins
-    assert not out["truncated"].any()
-    np.testing.assert_array_equal(out["policy_version"], fifo.episodes()[0].policy_version)
+    np.testing.assert_array_equal(out.terminated.astype(bool), last)  # termination wins
+    assert not out.truncated.any()
+    np.testing.assert_array_equal(out.policy_version, fifo.episodes()[0].policy_version)
 
 
 def test_sac_batches_use_env_rewards_from_online_only():
     fifo = OnlineFifo(1000)
     for i in range(5):
         fifo.add(make_episode(10, ret=float(i + 1), seq=i, start=1000 * i))
-    out = compose_batches(fifo, None, 2, 64, np.random.default_rng(0), False, 4, 1)
-    t = out["obs"][:, 0] % 1000
-    seq = out["obs"][:, 0] // 1000
+    out = compose_batches(fifo, None, 2, 64, np.random.default_rng(0), EnvLabels(), 4, 1)
+    t = out.obs[:, 0] % 1000
+    seq = out.obs[:, 0] // 1000
     expected = np.where(t == 9, seq + 1, 0.0)
-    np.testing.assert_array_equal(out["rewards"], expected)
+    np.testing.assert_array_equal(out.rewards, expected)
 
 
 # --- the service state: duplicates --------------------------------------------------
 
 
 def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
-    from silcr.buffer_service.service import ReplayState
+    from silcr.buffer_service.replay import ReplayState
     from silcr.common import protocol as P
     from silcr.common.config import Config
     from silcr.common.envs import EnvSpec
@@ -202,13 +201,13 @@ def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
     state = ReplayState(Config(run="t", env="InvertedPendulum-v5"), EnvSpec.of("InvertedPendulum-v5"))
     first = make_episode(5, ret=1.0, seq=0)
     first.incarnation = 7
-    state.ingest(P.EpisodeCodec.encode(first))
+    state.ingest(first.encode())
     with pytest.raises(P.ProtocolError) as info:
-        state.ingest(P.EpisodeCodec.encode(first))
+        state.ingest(first.encode())
     assert info.value.reason == "duplicate"
     restarted = make_episode(5, ret=1.0, seq=0)
     restarted.incarnation = 8
-    state.ingest(P.EpisodeCodec.encode(restarted))
+    state.ingest(restarted.encode())
     assert state.episodes_received == 2 and len(state.fifo) == 10
     assert state.rejections == {"duplicate": 1}
 
@@ -245,9 +244,9 @@ def test_heap_rows_survive_eviction_compaction_and_growth(offers):
     held = []
     for i, (n, ret) in enumerate(offers):
         if heap.offer(make_episode(n, ret=float(ret), seq=i, start=100 * i)):
-            held.append(heap.entries())
+            held.append(heap.state()["entries"])
     for entries in held:  # every episode ever stored, evicted ones included, kept its data
-        for _, _, e in entries:
+        for e, _, _ in entries:
             np.testing.assert_array_equal(e.obs[:, 0], 100 * e.seq + np.arange(e.length + 1))
     assert len(heap) == sum(e.length for e in heap.episodes()) <= 30
     seqs, ts = _draw(heap, 2000, np.random.default_rng(0))

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from silcr.actor.policy import NumpyPolicy, initial_weights
-from silcr.buffer_service.service import ReplayState
+from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
 from silcr.common.clients import BatchStream, InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
 from silcr.common.config import Config
@@ -88,15 +88,15 @@ def test_a_buffer_that_restarted_from_an_older_checkpoint_is_counted():
 
 def test_a_decoded_batch_trains_without_the_read_only_warning():
     """Decoded replies are read-only views of the message; the learner uses them without a copy or a warning."""
-    from silcr.learner.service import batch_tensors
+    from silcr.learner.update import to_tensor
 
     replay = _replay()
     for i in range(5):
         replay.store(make_episode(10, ret=float(i), seq=i))
     reply = P.BatchReply.decode(replay.sample(P.SampleRequest(2, 8)).encode())
-    assert not reply.arrays["obs"].flags.writeable
+    assert not reply.batch.obs.flags.writeable
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        t = batch_tensors(reply.arrays, torch.device("cpu"))
-    assert t["obs"].data_ptr() == reply.arrays["obs"].ctypes.data  # the same memory: no copy
-    assert t["obs"].shape == (16, OBS)
+        t = reply.batch.map(lambda a: to_tensor(a, torch.device("cpu")))
+    assert t.obs.data_ptr() == reply.batch.obs.ctypes.data  # the same memory: no copy
+    assert t.obs.shape == (16, OBS)

@@ -8,7 +8,7 @@ import sys
 import numpy as np
 import pytest
 
-from silcr.buffer_service.service import ReplayState
+from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
 from silcr.common.config import Config
 from silcr.common.demos import DemosError, load_demos, save_demos
@@ -54,9 +54,9 @@ def _rewrite(path, **changes):
     ({"env": np.array("Hopper-v5")}, "demonstrations are for Hopper-v5, but this run's env is InvertedPendulum-v5"),
     ({"obs": np.zeros((21, 5), np.float32)}, "obs has shape (21, 5), expected (21, 4)"),
     ({"actions": np.zeros((17, 1), np.float32)}, "actions has shape (17, 1), expected (18, 1)"),
-    ({"actions": np.full((18, 1), 2.0, np.float32)}, "actions must lie in [-1, 1]"),
-    ({"rewards": np.full(18, np.nan, np.float32)}, "rewards contains NaN"),
-    ({"returns": np.array([1.0, 2.0, 3.0])}, "is not the sum of its rewards"),
+    ({"actions": np.full((18, 1), 2.0, np.float32)}, "episode 0: actions must be the policy's squashed outputs in [-1, 1]"),
+    ({"rewards": np.full(18, np.nan, np.float32)}, "episode 0: episode contains NaN or infinite values"),
+    ({"returns": np.array([1.0, 2.0, 3.0])}, "differs from the sum of rewards"),
     ({"episode_lengths": np.array([5, 0, 13])}, "episode_lengths must be a non-empty list of positive integers"),
     ({"version": np.array(7)}, "version 7 is not supported"),
     ({"rewards": None}, "not a silcr demonstrations file (missing rewards)"),
@@ -87,11 +87,11 @@ def test_sqil_batches_are_half_online_at_0_and_half_demos_at_1(tmp_path, spec):
     state = ReplayState(cfg, spec)
     assert len(state.heap) == 40 and state.heap.num_episodes == 2
     for i in range(5):  # online episodes, one of them better than the demos
-        state.ingest(P.EpisodeCodec.encode(make_episode(10, ret=500.0 if i == 3 else 1.0, seq=i, start=10 * i)))
+        state.ingest(make_episode(10, ret=500.0 if i == 3 else 1.0, seq=i, start=10 * i).encode())
     assert len(state.heap) == 40 and state.heap.max_return == 50.0  # D_E never changes
     reply = state.answer(P.SampleRequest(4, 64).encode())
     assert reply.status == "ok"
-    obs, rew = reply.arrays["obs"][:, 0].reshape(4, 64), reply.arrays["rewards"].reshape(4, 64)
+    obs, rew = reply.batch.obs[:, 0].reshape(4, 64), reply.batch.rewards.reshape(4, 64)
     assert (rew[:, :32] == 0).all() and (rew[:, 32:] == 1).all()
     assert (obs[:, :32] < 1000).all() and (obs[:, 32:] >= 1000).all()  # online rows first, then demonstration rows
 
@@ -134,19 +134,19 @@ def test_a_warm_started_expert_buffer_gives_way_only_to_better_own_episodes(tmp_
     cfg = Config(run="warm", runs_dir=str(tmp_path), env=ENV, expert_capacity=40, learning_starts=10,
                  expert_init=str(tmp_path / "d.npz"))
     state, _ = open_replay(cfg, spec)
-    assert sorted(state.heap.returns()) == [60.0, 70.0]  # the best that fit M = 40, best first
+    assert sorted([e.episode_return for e in state.heap.episodes()]) == [60.0, 70.0]  # the best that fit M = 40, best first
     assert state.stats()["expert_init_transitions"] == 40
     for i in range(5):  # worse own episodes: the demonstrations stay
-        state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=10.0 + i, seq=i)))
-    assert sorted(state.heap.returns()) == [60.0, 70.0] and state.stats()["expert_init_transitions"] == 40
-    state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=65.0, seq=5)))  # better than one of them
-    assert sorted(state.heap.returns()) == [65.0, 70.0] and state.stats()["expert_init_transitions"] == 20
+        state.ingest(make_episode(20, ret=10.0 + i, seq=i).encode())
+    assert sorted([e.episode_return for e in state.heap.episodes()]) == [60.0, 70.0] and state.stats()["expert_init_transitions"] == 40
+    state.ingest(make_episode(20, ret=65.0, seq=5).encode())  # better than one of them
+    assert sorted([e.episode_return for e in state.heap.episodes()]) == [65.0, 70.0] and state.stats()["expert_init_transitions"] == 20
     # A checkpoint keeps them as demonstrations, and a resumed buffer does not add them again.
     snapshot.write(tmp_path / "warm" / "checkpoints" / "buffer.ckpt", snapshot.take(state))
     back, snap = open_replay(Config(**cfg.to_dict() | {"resume": True}), spec)
-    assert snap is not None and sorted(back.heap.returns()) == [65.0, 70.0]
+    assert snap is not None and sorted([e.episode_return for e in back.heap.episodes()]) == [65.0, 70.0]
     assert back.stats()["expert_init_transitions"] == 20
-    state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=90.0, seq=6)))  # evicts the lowest: the agent's 65
-    assert sorted(state.heap.returns()) == [70.0, 90.0] and state.stats()["expert_init_transitions"] == 20
-    state.ingest(P.EpisodeCodec.encode(make_episode(20, ret=95.0, seq=7)))
+    state.ingest(make_episode(20, ret=90.0, seq=6).encode())  # evicts the lowest: the agent's 65
+    assert sorted([e.episode_return for e in state.heap.episodes()]) == [70.0, 90.0] and state.stats()["expert_init_transitions"] == 20
+    state.ingest(make_episode(20, ret=95.0, seq=7).encode())
     assert state.stats()["expert_init_transitions"] == 0  # all pushed out by better own episodes

@@ -6,13 +6,13 @@ import numpy as np
 import pytest
 import torch
 
-from silcr.buffer_service.service import ReplayState
+from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
 from silcr.common.clients import InProcessWeights
 from silcr.common.config import GASIL_REWARD_FORMS, Config
 from silcr.common.envs import EnvSpec
 from silcr.learner.gasil import Gasil, GasilHyper, reward_from_logit
-from silcr.learner.service import Learner
+from silcr.learner.learner import Learner
 from tests.conftest import make_episode
 from tests.helpers import free_port, train_to_the_end
 
@@ -78,25 +78,25 @@ def test_the_buffer_serves_recent_rows_only_when_asked(tmp_path):
     req = P.SampleRequest(batches=2, batch_size=8, disc_batch_size=200, recent_window=25)
     reply = P.BatchReply.decode(replay.sample(P.SampleRequest.decode(req.encode())).encode())  # over the wire format
     assert reply.status == "ok" and reply.meta["online_rows"] == 8  # SAC's batch: all D_O, env rewards
-    recent = _episode_of(reply.arrays["disc_recent_obs"])
+    recent = _episode_of(reply.disc.recent_obs)
     assert recent.shape == (400,) and set(recent) == {7, 8, 9}  # the newest whole episodes holding >= 25 transitions
-    assert set(_episode_of(reply.arrays["disc_expert_obs"])) == {7, 8, 9}
-    np.testing.assert_array_equal(reply.arrays["disc_recent_actions"], np.full((400, 1), 0.5, np.float32))
+    assert set(_episode_of(reply.disc.expert_obs)) == {7, 8, 9}
+    np.testing.assert_array_equal(reply.disc.recent_actions, np.full((400, 1), 0.5, np.float32))
 
     for ep in range(10, 13):  # worse episodes: D_E keeps 7-9, the recent window moves on
         replay.store(make_episode(10, ret=-1.0, seq=ep, start=100.0 * ep))
     reply = replay.sample(req)
-    assert set(_episode_of(reply.arrays["disc_recent_obs"])) == {10, 11, 12}
-    assert set(_episode_of(reply.arrays["disc_expert_obs"])) == {7, 8, 9}
+    assert set(_episode_of(reply.disc.recent_obs)) == {10, 11, 12}
+    assert set(_episode_of(reply.disc.expert_obs)) == {7, 8, 9}
 
     old = P.BatchReply.decode(replay.sample(P.SampleRequest(2, 8)).encode())  # a learner from before GASIL
-    assert old.status == "ok" and not any(k.startswith("disc_") for k in old.arrays)
+    assert old.status == "ok" and old.disc is None
 
 
 def test_a_window_larger_than_d_o_uses_all_of_it(tmp_path):
     replay = _filled(_gasil_cfg(tmp_path), episodes=3)
     reply = replay.sample(P.SampleRequest(1, 8, disc_batch_size=300, recent_window=10**9))
-    assert set(_episode_of(reply.arrays["disc_recent_obs"])) == {0, 1, 2}
+    assert set(_episode_of(reply.disc.recent_obs)) == {0, 1, 2}
 
 
 def test_sample_request_fields_round_trip_and_are_checked():
@@ -127,13 +127,13 @@ class SacSpy:
 
     def __init__(self, learner: Learner) -> None:
         self.rewards: list[torch.Tensor] = []
-        update = learner.sac.update
+        update = learner.update.sac.update
 
         def spy(obs, actions, rewards, *rest):
             self.rewards.append(rewards.clone())
             return update(obs, actions, rewards, *rest)
 
-        learner.sac.update = spy
+        learner.update.sac.update = spy
 
 
 def test_r_d_is_recomputed_for_every_batch_from_the_current_discriminator(tmp_path):
@@ -143,22 +143,22 @@ def test_r_d_is_recomputed_for_every_batch_from_the_current_discriminator(tmp_pa
     spy = SacSpy(lrn)
     stored = replay.fifo.storage.rewards.copy()
     reply = replay.sample(P.SampleRequest(1, 8, 8, 25))
-    obs = torch.from_numpy(np.array(reply.arrays["obs"]))
-    actions = torch.from_numpy(np.array(reply.arrays["actions"]))
-    r_env = torch.from_numpy(np.array(reply.arrays["rewards"]))
+    obs = torch.from_numpy(np.array(reply.batch.obs))
+    actions = torch.from_numpy(np.array(reply.batch.actions))
+    r_env = torch.from_numpy(np.array(reply.batch.rewards))
     seen = []
     for _ in range(5):  # the same batch five times: the discriminator learns in between
         lrn.step(reply)
-        expected = r_env + 0.5 * lrn.gasil.reward(obs, actions)  # the discriminator after this step's update
+        expected = r_env + 0.5 * lrn.update.gasil.reward(obs, actions)  # the discriminator after this step's update
         torch.testing.assert_close(spy.rewards[-1], expected, rtol=0, atol=1e-6)
         seen.append(spy.rewards[-1])
     assert not torch.equal(seen[0], seen[-1])  # r_D followed the discriminator
-    assert lrn.gasil.updates == 5
+    assert lrn.update.gasil.updates == 5
     np.testing.assert_array_equal(replay.fifo.storage.rewards, stored)  # never stored
     stats = lrn.stats()
     for k in ("disc_loss", "disc_acc_expert", "disc_acc_policy", "gasil_reward_mean"):
         assert isinstance(stats[k], float), k
-    assert stats["gasil_reward_mean"] == pytest.approx(float(lrn.gasil.reward(obs, actions).mean()), abs=1e-6)
+    assert stats["gasil_reward_mean"] == pytest.approx(float(lrn.update.gasil.reward(obs, actions).mean()), abs=1e-6)
 
 
 def test_the_warm_up_keeps_r_d_out_of_the_reward(tmp_path):
@@ -167,7 +167,7 @@ def test_the_warm_up_keeps_r_d_out_of_the_reward(tmp_path):
     lrn = Learner(cfg, EnvSpec.of(ENV), InProcessWeights())
     spy = SacSpy(lrn)
     reply = replay.sample(P.SampleRequest(1, 8, 8, 25))
-    r_env = torch.from_numpy(np.array(reply.arrays["rewards"]))
+    r_env = torch.from_numpy(np.array(reply.batch.rewards))
     for _ in range(4):
         lrn.step(reply)
     assert all(torch.equal(r, r_env) for r in spy.rewards[:2])  # 1 and 2 discriminator updates: r_env alone
@@ -175,10 +175,10 @@ def test_the_warm_up_keeps_r_d_out_of_the_reward(tmp_path):
 
 
 def _all_state(lrn: Learner) -> list[torch.Tensor]:
-    g = lrn.gasil
-    tensors = [*lrn.sac.actor.parameters(), *lrn.sac.critic.parameters(), *lrn.sac.critic_target.parameters(),
-               lrn.sac.log_alpha, *g.disc.parameters(), *g.disc.buffers()]
-    for opt in (g.opt, lrn.sac.critic_opt, lrn.sac.actor_opt):
+    g = lrn.update.gasil
+    tensors = [*lrn.update.sac.actor.parameters(), *lrn.update.sac.critic.parameters(), *lrn.update.sac.critic_target.parameters(),
+               lrn.update.sac.log_alpha, *g.disc.parameters(), *g.disc.buffers()]
+    for opt in (g.opt, lrn.update.sac.critic_opt, lrn.update.sac.actor_opt):
         for st in opt.state.values():
             tensors += [v for v in st.values() if torch.is_tensor(v)]
     return tensors
@@ -193,12 +193,12 @@ def test_a_resumed_gasil_learner_continues_bit_identically(tmp_path):
         a.step(b)
     a.checkpoint()
     b = Learner(Config(**cfg.to_dict() | {"resume": True}), EnvSpec.of(ENV), InProcessWeights())
-    assert b.resumed and b.updates == a.updates == 6 and b.gasil.updates == 6
+    assert b.books.resumed and b.books.updates == a.books.updates == 6 and b.update.gasil.updates == 6
     for lrn in (a, b):
         torch.manual_seed(11)  # the policy's and the penalty's noise: the same draws for both
         for batch in batches[3:]:
             lrn.step(batch)
-    assert a.updates == b.updates == 12
+    assert a.books.updates == b.books.updates == 12
     for x, y in zip(_all_state(a), _all_state(b), strict=True):
         assert torch.equal(x, y)
     assert a.stats()["disc_loss"] == b.stats()["disc_loss"]
@@ -217,8 +217,12 @@ def test_a_learner_given_the_wrong_batches_says_why(tmp_path):
     with pytest.raises(RuntimeError, match="no discriminator rows"):
         lrn.step(_filled(cfg).sample(P.SampleRequest(1, 8)))
     silcr_buffer = _filled(Config(**cfg.to_dict() | {"algo": "silcr"}))  # serves D_E rows too, but mixed in
-    with pytest.raises(RuntimeError, match="runs --algo silcr or sqil"):
-        lrn.step(silcr_buffer.sample(P.SampleRequest(1, 8, 8, 25)))
+    reply = silcr_buffer.sample(P.SampleRequest(1, 8, 8, 25))
+    with pytest.raises(RuntimeError, match="the buffer service runs --algo silcr, this learner --algo gasil"):
+        lrn.step(reply)
+    reply.meta.pop("algo")  # a buffer from before 0.4 does not name its algorithm: its batches tell
+    with pytest.raises(RuntimeError, match="mixes D_E rows into its batches"):
+        Learner(cfg, EnvSpec.of(ENV), InProcessWeights()).step(reply)
 
 
 # -- the whole distributed system -------------------------------------------------

@@ -76,8 +76,8 @@ def test_not_ready_during_warmup(system):
 
 def test_episodes_arrive_bad_ones_are_rejected_and_batches_are_mixed(system):
     procs, session, stats = system
-    good = [P.EpisodeCodec.encode(episode(10, ret=float(i), seq=i, start=1000 * i)) for i in range(10)]
-    wrong_dim = P.EpisodeCodec.encode(episode(10, obs_dim=7))
+    good = [episode(10, ret=float(i), seq=i, start=1000 * i).encode() for i in range(10)]
+    wrong_dim = episode(10, obs_dim=7).encode()
     nan = msgpack.unpackb(good[0], raw=False)
     arr = np.frombuffer(nan["obs"][2], np.float32).copy()
     arr[3] = np.nan
@@ -97,12 +97,12 @@ def test_episodes_arrive_bad_ones_are_rejected_and_batches_are_mixed(system):
     r = _query(session, P.SampleRequest(2, 16).encode())
     reply = P.BatchReply.decode(r.ok.payload.to_bytes())
     assert reply.status == "ok" and reply.meta["batches"] == 2
-    rewards = reply.arrays["rewards"].reshape(2, 16)
+    rewards = reply.batch.rewards.reshape(2, 16)
     np.testing.assert_array_equal(rewards[:, :8], 0.0)
     np.testing.assert_array_equal(rewards[:, 8:], 1.0)
-    expert_obs = reply.arrays["obs"].reshape(2, 16, OBS)[:, 8:, 0]
+    expert_obs = reply.batch.obs.reshape(2, 16, OBS)[:, 8:, 0]
     assert (expert_obs >= 5000).all()  # only the top episodes are in D_E
-    np.testing.assert_array_equal(reply.arrays["next_obs"][:, 0], reply.arrays["obs"][:, 0] + 1)
+    np.testing.assert_array_equal(reply.batch.next_obs[:, 0], reply.batch.obs[:, 0] + 1)
 
 
 def test_bad_sample_requests_get_an_error_reply_and_the_service_lives(system):

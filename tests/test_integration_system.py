@@ -69,7 +69,7 @@ def test_bad_episodes_are_rejected_while_training_goes_on(system):
     before = _learner(stats)["updates"]
     pub = session.declare_publisher(KEYS.episodes, congestion_control=zenoh.CongestionControl.BLOCK)
     wait_for(lambda: pub.matching_status.matching, 10, "the buffer")
-    for payload in (b"\x00\x01", b"", P.encode_control("episode")):
+    for payload in (b"\x00\x01", b"", P.ShutdownNotice("x").encode()):
         pub.put(payload)
     wait_for(lambda: (stats.get(KEYS.stats_buffer) or {}).get("episodes_rejected", 0) >= 3, 20, "3 rejections")
     wait_for(lambda: _learner(stats)["updates"] > before + 20, 60, "training to go on")
@@ -77,7 +77,7 @@ def test_bad_episodes_are_rejected_while_training_goes_on(system):
 
 def test_liveliness_tokens(system):
     _, session, _, _ = system
-    alive = {str(r.ok.key_expr) for r in session.liveliness().get(KEYS.alive_all, timeout=3) if r.ok}
+    alive = {str(r.ok.key_expr) for r in session.liveliness().get(f"{KEYS.prefix}/alive/**", timeout=3) if r.ok}
     assert {KEYS.alive("buffer"), KEYS.alive("learner"), KEYS.alive("actor", 0), KEYS.alive("actor", 1)} <= alive
 
 

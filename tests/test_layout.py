@@ -50,8 +50,8 @@ def installed(tmp_path_factory):
     src = tmp / "src"
     shutil.copytree(REPO, src, ignore=shutil.ignore_patterns(".git", ".venv", "build", "runs", "results", "*.egg-info",
                                                             "__pycache__", ".pytest_cache", ".hypothesis"))
-    subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-q", "-w",
-                    str(tmp / "wheel"), str(src)], check=True, timeout=300, capture_output=True)
+    build = subprocess.run([sys.executable, "-m", "pip", "wheel", "--no-deps", "--no-build-isolation", "-v", "-w",
+                            str(tmp / "wheel"), str(src)], check=True, timeout=300, capture_output=True, text=True)
     wheel = next((tmp / "wheel").glob("silcr-*.whl"))
     env_dir = tmp / "venv"
     venv.create(env_dir, with_pip=True)
@@ -77,7 +77,15 @@ def installed(tmp_path_factory):
     (work / "silcr" / "cli.py").write_text("raise SystemExit('the checkout\\'s silcr/cli.py ran')\n")
     env = {k: v for k, v in os.environ.items() if k not in ("PYTHONPATH", "VIRTUAL_ENV")}
     env["PATH"] = f"{bin_dir}{os.pathsep}{env.get('PATH', '')}"
-    return {"added": added, "target": target, "bin": bin_dir, "work": work, "env": env}
+    return {"added": added, "target": target, "bin": bin_dir, "work": work, "env": env,
+            "build_output": build.stdout + build.stderr}
+
+
+def test_building_prints_no_warning_about_the_projects_configuration(installed):
+    """pyproject.toml as current setuptools expects it: an SPDX license string, data folders declared."""
+    warnings = [line.strip() for line in installed["build_output"].splitlines()
+                if "Warning" in line and "byte-compiling" not in line]
+    assert warnings == [], "\n".join(warnings)
 
 
 def test_installing_adds_exactly_one_top_level_name_and_the_data_files(installed):

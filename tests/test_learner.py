@@ -6,13 +6,13 @@ import csv
 
 import numpy as np
 
-from silcr.buffer_service.service import ReplayState
+from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
 from silcr.common.clients import InProcessWeights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.learner.checkpoint import load_checkpoint
-from silcr.learner.service import Learner
+from silcr.learner.learner import Learner
 from tests.conftest import make_episode
 
 ENV = "InvertedPendulum-v5"
@@ -45,15 +45,15 @@ def test_step_keeps_the_schedules(tmp_path):
     for i in range(6):
         replay.store(make_episode(10, ret=float(i), seq=i))
     lrn.start()
-    assert server.versions == [0] and lrn.evals == 1  # the untrained policy's weights and evaluation
+    assert server.versions == [0] and lrn.books.evals == 1  # the untrained policy's weights and evaluation
     for n in (2, 2, 2, 1):
         lrn.step(_batch(replay, n))
         lrn.poll()
-    assert lrn.updates == 7 and lrn.env_steps == 60
+    assert lrn.books.updates == 7 and lrn.books.env_steps == 60
     assert server.versions == [0, 1, 2]  # a new version every 3 updates (after 3 and 6)
-    assert load_checkpoint(lrn.checkpoint_path)["counters"]["updates"] == 6  # every 5 updates, at the step crossing it
-    assert lrn.evals == 2  # 60 env steps passed the evaluation at 40
-    assert lrn.policy_lag and lrn.expert_age  # both halves of a SILCR batch measured apart
+    assert load_checkpoint(lrn.books.checkpoint_path)["counters"]["updates"] == 6  # every 5 updates, at the step crossing it
+    assert lrn.books.evals == 2  # 60 env steps passed the evaluation at 40
+    assert lrn.books.policy_lag and lrn.books.expert_age  # both halves of a SILCR batch measured apart
     assert not lrn.done(starved=False)
     lrn.see({"env_steps": 100})
     assert not lrn.done(starved=False) and lrn.done(starved=True)  # 7 of the 90 updates due: done only if starved
@@ -61,7 +61,7 @@ def test_step_keeps_the_schedules(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "lt" / "progress.csv")))
     # evaluations: the untrained policy, the first poll past 40 env steps (after 2 updates), the final one
     assert [int(r["updates"]) for r in rows] == [0, 2, 7]
-    assert server.versions[-1] == 3 and load_checkpoint(lrn.checkpoint_path)["counters"]["updates"] == 7
+    assert server.versions[-1] == 3 and load_checkpoint(lrn.books.checkpoint_path)["counters"]["updates"] == 7
 
 
 def test_policy_lag_counts_only_online_rows(tmp_path):
@@ -69,12 +69,12 @@ def test_policy_lag_counts_only_online_rows(tmp_path):
     replay = ReplayState(cfg, EnvSpec.of(ENV))
     for i in range(4):
         replay.store(make_episode(10, ret=float(i), seq=i, version=0))
-    lrn.policy_version = 10
+    lrn.books.policy_version = 10
     batch = _batch(replay, 1)
-    versions = batch.arrays["policy_version"]
+    versions = batch.batch.policy_version
     online = batch.meta["online_rows"]
     versions[:online] = 8  # D_O rows: 2 versions behind
     versions[online:] = 1  # D_E rows: old expert episodes, 9 versions behind
     lrn.step(batch)
-    assert lrn.policy_lag[-1] == 2.0 and lrn.expert_age[-1] == 9.0
+    assert lrn.books.policy_lag[-1] == 2.0 and lrn.books.expert_age[-1] == 9.0
     assert np.isfinite(lrn.stats()["policy_lag_mean"])

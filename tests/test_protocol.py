@@ -11,11 +11,11 @@ from hypothesis import strategies as st
 from silcr.common import protocol as P
 from tests.conftest import make_episode
 
-CODEC = P.EpisodeCodec(obs_dim=4, act_dim=1, max_steps=1000, max_bytes=1 << 20)
+LIMITS = P.EpisodeLimits(obs_dim=4, act_dim=1, max_steps=1000, max_bytes=1 << 20)
 
 
 def _raw(ep: P.Episode) -> dict:
-    return msgpack.unpackb(P.EpisodeCodec.encode(ep), raw=False)
+    return msgpack.unpackb(ep.encode(), raw=False)
 
 
 def _pack(msg: dict) -> bytes:
@@ -24,7 +24,7 @@ def _pack(msg: dict) -> bytes:
 
 def test_episode_round_trip():
     ep = make_episode(7, ret=3.5, actor_id=2, seq=9, version=4, terminated=False, truncated=True)
-    back = CODEC.decode(P.EpisodeCodec.encode(ep))
+    back = P.Episode.decode(ep.encode(), LIMITS)
     assert (back.actor_id, back.seq, back.policy_version) == (2, 9, 4)
     assert back.episode_return == pytest.approx(3.5)
     assert (back.terminated, back.truncated) == (False, True)
@@ -77,7 +77,7 @@ NAN_OBS[2, 1] = np.nan
 )
 def test_episode_rejections(payload, reason):
     with pytest.raises(P.ProtocolError) as info:
-        CODEC.decode(payload)
+        P.Episode.decode(payload, LIMITS)
     assert info.value.reason == reason
     assert str(info.value)  # a human-readable one-line explanation
     assert "\n" not in str(info.value)
@@ -87,7 +87,7 @@ def test_episode_rejections(payload, reason):
 @given(st.binary(max_size=2048))
 def test_decoder_never_crashes_on_random_bytes(data):
     try:
-        CODEC.decode(data)
+        P.Episode.decode(data, LIMITS)
     except P.ProtocolError:
         pass
 
@@ -104,7 +104,7 @@ _values = st.recursive(
 def test_decoder_rejects_structured_garbage_cleanly(fields):
     msg = _raw(make_episode(3, ret=1.0)) | fields
     try:
-        ep = CODEC.decode(_pack(msg))
+        ep = P.Episode.decode(_pack(msg), LIMITS)
     except P.ProtocolError:
         return
     # Anything accepted must be internally consistent.
@@ -114,12 +114,12 @@ def test_decoder_rejects_structured_garbage_cleanly(fields):
 
 def test_weights_round_trip_and_rejection():
     w = P.Weights(7, {"a.weight": np.ones((2, 3), np.float32)}, {"hidden": [3]})
-    back = P.decode_weights(P.encode_weights(w))
+    back = P.Weights.decode(w.encode())
     assert back.version == 7 and back.arch == {"hidden": [3]}
     np.testing.assert_array_equal(back.params["a.weight"], np.ones((2, 3)))
     bad = P.Weights(1, {"a": np.array([np.nan], np.float32)})
     with pytest.raises(P.ProtocolError, match="NaN"):
-        P.decode_weights(P.encode_weights(bad))
+        P.Weights.decode(bad.encode())
 
 
 @pytest.mark.parametrize("batches, batch_size", [(0, 128), (65, 128), (1, 1), (1, 10**6)])
@@ -133,15 +133,12 @@ def test_sample_request_bounds(batches, batch_size):
 def test_sample_request_and_batch_reply_round_trip():
     assert P.SampleRequest.decode(P.SampleRequest(3, 64).encode()) == P.SampleRequest(3, 64)
     n = 4
-    arrays = {
-        "obs": np.zeros((n, 2)), "next_obs": np.ones((n, 2)), "actions": np.zeros((n, 1)),
-        "rewards": np.arange(n), "terminated": np.array([0, 1, 0, 0]), "truncated": np.zeros(n),
-        "policy_version": np.arange(n),
-    }
-    back = P.BatchReply.decode(P.BatchReply("ok", {"env_steps": 5}, arrays).encode())
-    assert back.status == "ok" and back.meta["env_steps"] == 5
-    assert back.arrays["obs"].dtype == np.float32 and back.arrays["terminated"].dtype == np.uint8
-    np.testing.assert_array_equal(back.arrays["rewards"], [0, 1, 2, 3])
+    batch = P.Batch(obs=np.zeros((n, 2)), actions=np.zeros((n, 1)), rewards=np.arange(n), next_obs=np.ones((n, 2)),
+                    terminated=np.array([0, 1, 0, 0]), truncated=np.zeros(n), policy_version=np.arange(n))
+    back = P.BatchReply.decode(P.BatchReply("ok", {"env_steps": 5}, batch).encode())
+    assert back.status == "ok" and back.meta["env_steps"] == 5 and back.disc is None
+    assert back.batch.obs.dtype == np.float32 and back.batch.terminated.dtype == np.uint8
+    np.testing.assert_array_equal(back.batch.rewards, [0, 1, 2, 3])
     nr = P.BatchReply.decode(P.BatchReply("not_ready", {}, reason="warmup", retry_after_ms=50).encode())
     assert (nr.status, nr.reason, nr.retry_after_ms) == ("not_ready", "warmup", 50)
 

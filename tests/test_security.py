@@ -93,7 +93,7 @@ def test_tls_acl_lets_the_run_train_and_refuses_a_rogue_actor(tmp_path, certs):
         time.sleep(1.0)
         for _ in range(5):
             rogue.put(keys.weights, b"rogue weights")
-            rogue.put(keys.control_shutdown, P.encode_control("shutdown", reason="rogue"))
+            rogue.put(keys.control_shutdown, P.ShutdownNotice("rogue").encode())
         time.sleep(2.0)  # stats arrive every 0.3 s: a permitted subscriber would have seen several
         with lock:
             assert weights_seen and b"rogue weights" not in weights_seen

@@ -1,0 +1,49 @@
+"""A role's process over Zenoh, set up in one place for the buffer, the learner and every actor.
+
+`role_session` opens the session the options describe (`--connect`, `--listen`,
+`--zenoh-mode`, `--zenoh-config`), stops the role when anyone announces the end of the
+run, declares the role's liveliness token (`silcr/<run>/alive/<role>[/<id>]`) and its
+stats publisher, and gives the role its stats schedule. On the way out it withdraws
+the token, so the others see the role leave before its session closes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+from dataclasses import dataclass
+from typing import Iterator
+
+import zenoh
+
+from silcr.common import protocol as P
+from silcr.common.clients import StatsPublisher, stop_on_shutdown
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
+from silcr.common.lifecycle import StopFlag
+from silcr.common.schedule import Every
+from silcr.common.zenoh_session import open_session, session_config
+
+
+@dataclass
+class RoleSession:
+    spec: EnvSpec
+    keys: P.Keys
+    session: zenoh.Session
+    stats: StatsPublisher
+    #: due every `--stats-interval` seconds, first at once
+    stats_due: Every
+
+
+@contextlib.contextmanager
+def role_session(cfg: Config, stop: StopFlag, role: str, ident: int | None = None,
+                 spec: EnvSpec | None = None) -> Iterator[RoleSession]:
+    keys = P.Keys(cfg.run)
+    spec = spec or EnvSpec.of(cfg.env)
+    with open_session(session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)) as session:
+        stop_on_shutdown(session, keys, stop)
+        token = session.liveliness().declare_token(keys.alive(role, ident))
+        try:
+            yield RoleSession(spec, keys, session, StatsPublisher(session, keys.stats(role, ident)),
+                              Every(cfg.stats_interval))
+        finally:
+            token.undeclare()

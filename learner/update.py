@@ -1,0 +1,134 @@
+"""The learner's gradient steps: SAC on every batch, and GASIL's discriminator first when the algorithm has one.
+
+`Update.train(reply, updates_done)` runs one SAC update (`sac.py`) per batch of a
+buffer reply. With a discriminator (`Algorithm.discriminator`, `gasil.py`) it first
+steps the discriminator on the reply's D_E and recent D_O rows (every
+`--disc-interval` updates), then shapes that batch's rewards with r_D from the
+discriminator as it is now, never stored. Everything it holds saves and restores
+itself (`state`, `restore`): the checkpoint's "sac" and "gasil" sections.
+"""
+
+from __future__ import annotations
+
+import warnings
+from typing import Any
+
+import numpy as np
+import torch
+
+from silcr.common import protocol as P
+from silcr.common.algorithms import algorithm
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
+
+from .gasil import Gasil, GasilHyper
+from .sac import Sac, SacHyper, as_floats
+
+
+def pick_device(name: str) -> torch.device:
+    if name == "auto":
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+    if name == "cuda" and not torch.cuda.is_available():
+        raise ValueError("--device cuda: CUDA is not available on this machine")
+    return torch.device(name)
+
+
+def to_tensor(a: np.ndarray, device: torch.device) -> torch.Tensor:
+    """A reply's array as a tensor on `device`, with no copy on a CPU.
+
+    Arrays decoded from a message are read-only views of it (zero-copy), and torch
+    warns about tensors over read-only memory because writing to them would be
+    undefined. The update only reads its batch (the flags become new float tensors),
+    so that one warning is silenced here instead of paying for a copy of every batch.
+    """
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", message="The given NumPy array is not writable", category=UserWarning)
+        return torch.from_numpy(a).to(device, non_blocking=True)
+
+
+class BufferMismatch(RuntimeError):
+    """The buffer service's batches are not what this learner's --algo needs (it runs another --algo)."""
+
+
+class Update:
+    """The networks, the optimisers and the gradient steps of one learner."""
+
+    def __init__(self, cfg: Config, spec: EnvSpec) -> None:
+        self.cfg = cfg
+        self.device = pick_device(cfg.device)
+        if cfg.torch_threads:
+            torch.set_num_threads(cfg.torch_threads)
+        torch.manual_seed(cfg.seed)
+        hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
+                      cfg.tanh_log_prob)
+        self.sac = Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
+        self.gasil: Gasil | None = None
+        if algorithm(cfg.algo).discriminator:
+            ghp = GasilHyper(cfg.gasil_alpha, cfg.gasil_reward, tuple(cfg.disc_hidden), cfg.disc_lr, cfg.disc_grad_penalty,
+                             cfg.disc_warmup)
+            self.gasil = Gasil(spec.obs_dim, spec.act_dim, ghp, self.device)
+        self._last: dict[str, torch.Tensor] = {}
+        self._disc_last: dict[str, torch.Tensor] = {}
+
+    def sample_request(self) -> P.SampleRequest:
+        """What to ask the buffer for: a discriminator also wants its rows."""
+        cfg = self.cfg
+        if self.gasil is None:
+            return P.SampleRequest(cfg.batches_per_request, cfg.batch_size)
+        return P.SampleRequest(cfg.batches_per_request, cfg.batch_size, cfg.disc_batch_size, cfg.recent_window)
+
+    def train(self, reply: P.BatchReply, updates_done: int) -> int:
+        """One update per batch of `reply` (`updates_done` updates came before); how many it made."""
+        n, size = int(reply.meta["batches"]), int(reply.meta["batch_size"])
+        if self.gasil is not None and reply.disc is None:
+            raise BufferMismatch("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
+                                 "or predates GASIL (start it with --algo gasil)")
+        batch = reply.batch.map(lambda a: to_tensor(a, self.device))
+        disc = reply.disc.map(lambda a: to_tensor(a, self.device)) if reply.disc is not None else None
+        term, trunc = batch.terminated.float(), batch.truncated.float()
+        for b in range(n):
+            s = slice(b * size, (b + 1) * size)
+            rewards = batch.rewards[s]
+            if self.gasil is not None:
+                if (updates_done + b) % self.cfg.disc_interval == 0:
+                    d = disc.rows(b, self.cfg.disc_batch_size)
+                    self._disc_last = self.gasil.update(d.expert_obs, d.expert_actions, d.recent_obs, d.recent_actions)
+                # r_D from the discriminator as it is now, for this batch only (never stored)
+                rewards, r_d_mean = self.gasil.shape(rewards, batch.obs[s], batch.actions[s])
+            self._last = self.sac.update(batch.obs[s], batch.actions[s], rewards, batch.next_obs[s], term[s], trunc[s])
+            if self.gasil is not None:
+                self._last |= self._disc_last | {"gasil_reward_mean": r_d_mean}
+        return n
+
+    # -- reporting -------------------------------------------------------------------
+    @property
+    def alpha(self) -> float:
+        return self.sac.alpha
+
+    def stats(self) -> dict[str, float]:
+        """The last update's statistics and the divergence count; reading them waits for the device, so only when reporting."""
+        out: dict[str, float] = as_floats(self._last)
+        out["q_bound_exceeded"] = int(self.sac.q_bound_exceeded)
+        return out
+
+    def stat_names(self) -> list[str]:
+        return [*self._last, "q_bound_exceeded"] if self._last else []
+
+    def weights(self, version: int, incarnation: int, sent_at: float) -> P.Weights:
+        return P.Weights(version, self.sac.actor_arrays(), self.sac.arch(), sent_at=sent_at, incarnation=incarnation)
+
+    # -- checkpoints -------------------------------------------------------------------
+    def state(self) -> dict[str, Any]:
+        out = {"sac": self.sac.state_dict()}
+        if self.gasil is not None:
+            out["gasil"] = self.gasil.state_dict()
+        return out
+
+    def restore(self, payload: dict[str, Any], where: object) -> None:
+        if payload["sac"]["arch"] != self.sac.arch():
+            raise ValueError(f"checkpoint networks {payload['sac']['arch']} do not match this run's {self.sac.arch()}")
+        self.sac.load_state_dict(payload["sac"])
+        if self.gasil is not None:
+            if payload.get("gasil") is None:
+                raise ValueError(f"checkpoint {where} holds no GASIL discriminator (written by another --algo)")
+            self.gasil.load_state_dict(payload["gasil"])
