@@ -25,7 +25,9 @@ _log_initialised = False
 
 
 def init_logging() -> None:
-    """Route zenoh's own warnings (closed transports, dropped oversize messages) to stderr once."""
+    """Show zenoh's own errors (closed transports, dropped oversize messages) once. Its Rust logger
+    writes them to file descriptor 1: a component's log file, or the terminal (`silcr monitor --json`
+    moves them to stderr to keep its output JSON)."""
     global _log_initialised
     if not _log_initialised:
         zenoh.init_log_from_env_or("error")

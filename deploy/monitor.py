@@ -7,6 +7,8 @@ client of the stats contract (docs/protocol.md).
 from __future__ import annotations
 
 import json
+import os
+import sys
 import threading
 import time
 from typing import Any
@@ -90,6 +92,13 @@ def _fmt(v: Any) -> str:
 def run_monitor(run: str, connect: list[str], mode: str, zenoh_config: str, once: bool, as_json: bool, timeout: float, stop: StopFlag) -> int:
     keys = P.Keys(run)
     snap = StatsSnapshot(keys)
+    out = sys.stdout
+    if once and as_json:
+        # Zenoh's own log lines (its Rust logger) go to file descriptor 1, and one printed while
+        # the session runs would break the JSON: they go to stderr, the JSON alone to stdout.
+        sys.stdout.flush()
+        out = os.fdopen(os.dup(1), "w")
+        os.dup2(2, 1)
     with open_session(session_config(connect, [], mode, zenoh_config)) as session:
         session.declare_subscriber(keys.stats_all, snap.on_sample)
         if once:
@@ -102,10 +111,11 @@ def run_monitor(run: str, connect: list[str], mode: str, zenoh_config: str, once
                 stop.wait(0.1)
             s = snap.as_dict()
             if s["buffer"] is None and s["learner"] is None and not s["actors"]:
-                print(f"silcr monitor: no stats from run {run!r} within {timeout:g}s (is it running, and is --connect right?)")
+                print(f"silcr monitor: no stats from run {run!r} within {timeout:g}s (is it running, and is --connect right?)",
+                      file=sys.stderr)
                 return 1
             if as_json:
-                print(json.dumps(s, indent=2))
+                print(json.dumps(s, indent=2), file=out, flush=True)
             else:
                 from rich.console import Console
 

@@ -52,10 +52,12 @@ def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
         for i in (0, 1):
             actor = wait_for(lambda: stats.get(keys.stats_actor(i)), 60, f"actor {i} stats")
             assert {"episodes", "steps", "policy_version"} <= actor.keys()
+        # RUST_LOG=info: Zenoh logs its session's start, on file descriptor 1; the JSON must stay clean
+        # (an error line Zenoh printed under load once broke it).
         mon = subprocess.run(
             [sys.executable, "-m", "silcr.cli", "monitor", "--run", run, "--connect", f"tcp/127.0.0.1:{port}",
              "--once", "--json", "--timeout", "20"],
-            capture_output=True, text=True, timeout=60, cwd=REPO,
+            capture_output=True, text=True, timeout=60, cwd=REPO, env={**os.environ, "RUST_LOG": "info"},
         )
         assert mon.returncode == 0, mon.stdout + mon.stderr
         snap = json.loads(mon.stdout)
