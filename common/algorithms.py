@@ -22,7 +22,9 @@ EXPERT_SOURCES = ("own", "demos", "none")
 #: How a batch's rows get their rewards (`silcr.buffer_service.labels`):
 #:   constant  0 for D_O rows, 1 for D_E rows (SILCR's eq. 3; SQIL)
 #:   env       the reward the actors' env paid (`--reward dense|episodic`)
-LABELS = ("constant", "env")
+#:   credit    IRCR's guidance reward: the row's episode's return per step, min-max
+#:             normalised over the episodes now in D_O and D_E
+LABELS = ("constant", "env", "credit")
 
 
 @dataclass(frozen=True)
@@ -80,6 +82,9 @@ ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
     Algorithm("gasil", "SAC on the env's reward plus a discriminator's reward for looking like the top-M D_E",
               "Guo et al. 2018", expert="own", labels="env", mixes_expert=False, discriminator=True,
               options=_GASIL_OPTIONS),
+    Algorithm("ircr", "each row labelled with its episode's return per step, min-max normalised over the episodes in "
+              "D_O and D_E; top-M D_E by return, half of each batch from it",
+              "Gangwani et al. 2020", expert="own", labels="credit", mixes_expert=True),
 )}
 
 DEFAULT = "silcr"
@@ -102,7 +107,8 @@ def taking(option: str) -> list[str]:
 def markdown_table() -> str:
     """The algorithms as docs/algorithm.md shows them (a test keeps the two equal)."""
     expert = {"own": "the agent's top-M episodes by return", "demos": "demonstrations (`--demos`), fixed", "none": "-"}
-    labels = {"constant": "0 (D_O) / 1 (D_E)", "env": "the env's (`--reward`)"}
+    labels = {"constant": "0 (D_O) / 1 (D_E)", "env": "the env's (`--reward`)",
+              "credit": "its episode's return per step, min-max normalised over D_O and D_E"}
     lines = ["| `--algo` | D_E holds | rows' reward | batch | discriminator | own options | source |",
              "|---|---|---|---|---|---|---|"]
     for a in ALGORITHMS.values():
