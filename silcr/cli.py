@@ -54,6 +54,15 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
                            "(default: eval_return; e.g. expert_min_return, q_max, alpha)")
             p.add_argument("--logy", action="store_true", help="log y axis, with the median and the range over seeds instead of mean +- std "
                            "(for q_max across diverging runs)")
+            p.add_argument("--stats", choices=["rliable"], default=None, help="also few-seed statistics of the final return "
+                           "(rliable: interquartile mean with stratified bootstrap intervals per task and over tasks, "
+                           "probability of improvement), added to the table and drawn in <out>-stats.png")
+            p.add_argument("--compare", default=None, metavar="LABEL", help="with --stats: the group whose probability of "
+                           "improvement over every other group is reported (a curve label, e.g. silcr)")
+            p.add_argument("--reference", default=None, metavar="LABEL", help="with --stats: the group whose final return "
+                           "is 1 in the normalisation over tasks (default: the sac-dense group)")
+            p.add_argument("--bootstrap-reps", type=int, default=2000, metavar="N", help="with --stats: bootstrap "
+                           "replications per interval (default: 2000)")
             continue
         if role == "eval":
             p.add_argument("checkpoint", help="a learner checkpoint (runs/<run>/checkpoints/learner.pt)")

@@ -180,3 +180,30 @@ def test_a_resumed_run_plots_the_rows_written_after_the_resume(tmp_path):
                   [1, 2, 3, 99, 4, 5, 6, 7])
     run = load_run(d)
     assert list(run.steps) == [0, 1000, 2000, 2500, 3000, 4000, 4000] and list(run.returns) == [1, 2, 3, 4, 5, 6, 7]
+
+
+def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probability_of_improvement(tmp_path):
+    """Three seeds of silcr and ircr and one of sac-dense on two tasks, with final returns chosen so the
+    answers are known: the IQM of three values is their mean, silcr beats ircr in every pair."""
+    dirs = []
+    finals = {"silcr": [10.0, 20.0, 30.0], "ircr": [2.0, 4.0, 6.0], "sac": [40.0]}
+    for env in ("Hopper-v5", "Swimmer-v5"):
+        for algo, values in finals.items():
+            for seed, final in enumerate(values):
+                dirs.append(_fake_run(tmp_path, env, algo, seed, [0, 1000], [0.0, final]))
+    out = tmp_path / "fig.png"
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(out), "--stats", "rliable",
+                        "--compare", "silcr", "--table", str(tmp_path / "t.md"), "--bootstrap-reps", "200"],
+                       capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    table = (tmp_path / "t.md").read_text()
+    assert "| Hopper-v5 | silcr | 3 | 20.00 [" in table and "| Swimmer-v5 | ircr | 3 | 4.00 [" in table
+    # normalised: 0 = the untrained policy (first evaluations, all 0), 1 = sac-dense's final return (40)
+    assert "1 = sac-dense's final return" in table
+    assert "| silcr | 3 | 0.50 [" in table and "| sac-dense | 1 | 1.00 [1.00, 1.00] |" in table
+    assert "| Hopper-v5 | ircr | 1.00 [1.00, 1.00] |" in table  # every silcr run beats every ircr run
+    assert "| all 2 tasks | ircr | 1.00 [1.00, 1.00] |" in table
+    assert (tmp_path / "fig-stats.png").stat().st_size > 1000
+    bad = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(out), "--stats", "rliable",
+                          "--compare", "nope"], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert bad.returncode == 2 and "--compare 'nope': no such group" in bad.stderr and "Traceback" not in bad.stderr

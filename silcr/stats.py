@@ -1,0 +1,140 @@
+"""Few-seed statistics for `silcr plot --stats rliable` (Agarwal et al., NeurIPS 2021: rliable).
+
+With 3 seeds a mean +- std says little, so the final returns are summarised the way
+rliable recommends, with its own code:
+
+* per task, the interquartile mean (IQM) of the final return over seeds, with a 95%
+  stratified bootstrap confidence interval;
+* over tasks, the IQM of normalised final returns: 0 is the untrained policy's return
+  (every run's first evaluation, averaged per task) and 1 the reference group's final
+  return (by default SAC with the dense reward at the same budget), so tasks of
+  different scales can be pooled;
+* the probability of improvement P(X > Y) of one group over each other, per task and
+  over tasks, with its interval: the chance that a run of X beats a run of Y on a task.
+
+A run's final return is its last evaluation (the mean over `--eval-episodes` episodes
+of the deterministic policy). rliable is an optional dependency (`pip install rliable`,
+or the `stats` extra).
+"""
+
+from __future__ import annotations
+
+from collections import defaultdict
+from pathlib import Path
+
+import numpy as np
+
+from silcr.plot import RunCurve, group
+
+#: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
+REPS = 2000
+
+
+def _rliable():
+    try:
+        from rliable import library as rly
+        from rliable import metrics
+    except ImportError:
+        raise ValueError("--stats rliable needs the rliable package: pip install rliable (or silcr[stats])") from None
+    return rly, metrics
+
+
+def _ci(estimate: float, interval: np.ndarray) -> str:
+    return f"{estimate:,.2f} [{interval[0]:,.2f}, {interval[1]:,.2f}]"
+
+
+def _final(runs: list[RunCurve]) -> np.ndarray:
+    return np.array([r.returns[-1] for r in runs], np.float64)
+
+
+def default_reference(labels: set[str]) -> str | None:
+    return next((label for label in sorted(labels) if label.startswith("sac-dense")), None)
+
+
+def rliable_report(runs: list[RunCurve], compare: str | None = None, reference: str | None = None,
+                   reps: int = REPS, seed: int = 0, figure: Path | None = None) -> str:
+    """The Markdown report (and, with `figure`, an interval plot) described in the module docstring."""
+    rly, metrics = _rliable()
+    groups = group(runs)
+    envs = sorted(groups)
+    labels = sorted({label for env in envs for label in groups[env]})
+    rng = lambda: np.random.RandomState(seed)  # noqa: E731 - the same draws for every estimate
+    iqm = lambda x: np.array([metrics.aggregate_iqm(x)])  # noqa: E731
+    lines = [f"Final return: interquartile mean over seeds, 95% stratified bootstrap interval ({reps} replications, "
+             f"rliable).", "", "| env | group | seeds | IQM [95% CI] |", "|---|---|---|---|"]
+    per_task: dict[str, dict[str, tuple[float, np.ndarray]]] = defaultdict(dict)
+    for env in envs:
+        for label in sorted(groups[env]):
+            scores = _final(groups[env][label])
+            point, interval = rly.get_interval_estimates({label: scores[:, None]}, iqm, reps=reps,
+                                                         random_state=rng())
+            per_task[env][label] = (float(point[label][0]), interval[label][:, 0])
+            lines.append(f"| {env} | {label} | {len(scores)} | {_ci(*per_task[env][label])} |")
+
+    reference = reference or default_reference(set(labels))
+    complete = [label for label in labels if all(label in groups[env] for env in envs)]
+    normalised: dict[str, np.ndarray] = {}
+    if reference is not None and reference in complete:
+        lines += ["", f"Over the {len(envs)} tasks: final return normalised per task, 0 = the untrained policy "
+                      f"(first evaluation, mean over every run of the task), 1 = {reference}'s final return "
+                      f"(its mean over seeds). IQM [95% CI] over all runs of all tasks.", "",
+                  "| group | runs per task | normalised IQM [95% CI] |", "|---|---|---|"]
+        for label in complete:
+            columns = []
+            for env in envs:
+                zero = float(np.mean([r.returns[0] for g in groups[env].values() for r in g]))
+                one = float(_final(groups[env][reference]).mean())
+                columns.append((_final(groups[env][label]) - zero) / (one - zero if one != zero else 1.0))
+            n = min(len(c) for c in columns)  # rliable wants runs x tasks: the fewest seeds any task has
+            normalised[label] = np.stack([c[:n] for c in columns], axis=1)
+        points, intervals = rly.get_interval_estimates(normalised, iqm, reps=reps, random_state=rng())
+        for label in complete:
+            lines.append(f"| {label} | {normalised[label].shape[0]} | {_ci(points[label][0], intervals[label][:, 0])} |")
+    elif reference is not None:
+        lines += ["", f"(No aggregate over tasks: the reference {reference} is missing on some task.)"]
+
+    if compare is not None:
+        others = [label for label in labels if label != compare]
+        lines += ["", f"Probability of improvement P({compare} > Y): the chance that a run of {compare} ends above a "
+                      f"run of Y on the same task, 95% interval.", "",
+                  "| env | Y | P(X > Y) [95% CI] |", "|---|---|---|"]
+        for env in envs:
+            if compare not in groups[env]:
+                continue
+            for other in others:
+                if other not in groups[env]:
+                    continue
+                pair = {other: (_final(groups[env][compare])[:, None], _final(groups[env][other])[:, None])}
+                points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps,
+                                                               random_state=rng())
+                lines.append(f"| {env} | {other} | {_ci(float(points[other]), intervals[other][:, 0])} |")
+        if compare in normalised:
+            for other in others:
+                if other in normalised:
+                    pair = {other: (normalised[compare], normalised[other])}
+                    points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement,
+                                                                   reps=reps, random_state=rng())
+                    lines.append(f"| all {len(envs)} tasks | {other} | "
+                                 f"{_ci(float(points[other]), intervals[other][:, 0])} |")
+    if figure is not None:
+        _interval_figure(per_task, figure)
+    return "\n".join(lines) + "\n"
+
+
+def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], out: Path) -> None:
+    """rliable's interval plot: one panel per task, one bar per group present on every task."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    from rliable import plot_utils
+
+    envs = sorted(per_task)
+    labels = sorted(set.intersection(*(set(per_task[env]) for env in envs)))
+    if not labels:
+        return
+    points = {label: np.array([per_task[env][label][0] for env in envs]) for label in labels}
+    intervals = {label: np.stack([per_task[env][label][1] for env in envs], axis=1) for label in labels}
+    fig, _ = plot_utils.plot_interval_estimates(points, intervals, envs, labels, xlabel="final return: IQM, 95% CI",
+                                                row_height=0.5)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120, bbox_inches="tight")
