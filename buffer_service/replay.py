@@ -66,6 +66,7 @@ class ReplayState:
         self.batches_served = 0
         self.sample_requests = 0
         self.sample_requests_rejected = 0
+        self.request_rejections: collections.Counter[str] = collections.Counter()  # by reason
         self.not_ready_replies = 0
         self.last_episode_version = -1
         # Last sequence number per (actor id, incarnation): an episode is never stored twice.
@@ -143,11 +144,15 @@ class ReplayState:
             if payload is None:
                 raise P.ProtocolError("bad_request", "sample query carries no payload")
             req = P.SampleRequest.decode(payload)
-        except P.ProtocolError:
+        except P.ProtocolError as e:
             self.sample_requests += 1
-            self.sample_requests_rejected += 1
+            self._refused(e)
             raise
         return self.sample(req)
+
+    def _refused(self, e: P.ProtocolError) -> None:
+        self.sample_requests_rejected += 1
+        self.request_rejections[e.reason] += 1
 
     def sample(self, req: P.SampleRequest, keep_ratio: bool = False) -> P.BatchReply:
         """Up to `req.batches` batches, as many as the rate limiter allows now.
@@ -157,9 +162,18 @@ class ReplayState:
         updates the inserted transitions are due, as the single-process loop wants.
         """
         self.sample_requests += 1
+        rows = req.batches * (req.batch_size + 2 * req.disc_batch_size)
+        row_bytes = 4 * (2 * self.spec.obs_dim + self.spec.act_dim + 1) + 2 + 8  # obs, next_obs, action, reward, flags, version
+        if rows * row_bytes > P.MAX_REPLY_BYTES:
+            e = P.ProtocolError("bad_request", f"a reply of {rows} rows would be {rows * row_bytes / 2**20:.0f} MiB, more "
+                                               f"than {P.MAX_REPLY_BYTES >> 20} MiB: at most "
+                                               f"{P.MAX_REPLY_BYTES // row_bytes} rows per request on {self.spec.env_id}")
+            self._refused(e)
+            raise e
         if req.disc_batch_size and self.heap is None:
-            self.sample_requests_rejected += 1
-            raise P.ProtocolError("bad_request", f"disc_batch_size: this buffer keeps no D_E (--algo {self.algo.name})")
+            e = P.ProtocolError("bad_request", f"disc_batch_size: this buffer keeps no D_E (--algo {self.algo.name})")
+            self._refused(e)
+            raise e
         if self.limiter.warming_up() or (self.heap is not None and self.heap.num_episodes == 0):
             self.not_ready_replies += 1
             return P.BatchReply("not_ready", self.meta(), reason="warmup", retry_after_ms=200)
@@ -197,7 +211,8 @@ class ReplayState:
     def state(self) -> dict[str, Any]:
         """Everything a restart needs, each table and the limiter providing its own part (`snapshot` writes it)."""
         return {
-            "counters": {name: getattr(self, name) for name in self.COUNTERS} | {"rejections": dict(self.rejections)},
+            "counters": {name: getattr(self, name) for name in self.COUNTERS} | {"rejections": dict(self.rejections),
+                                                                                 "request_rejections": dict(self.request_rejections)},
             "last_seq": [[a, inc, seq] for (a, inc), seq in self.last_seq.items()],
             "fifo": self.fifo.state(),
             # SQIL's D_E is the demonstrations, loaded again from --demos at every start.
@@ -211,6 +226,7 @@ class ReplayState:
         for name in self.COUNTERS:
             setattr(self, name, int(c[name]))
         self.rejections.update(c["rejections"])
+        self.request_rejections.update(c.get("request_rejections", {}))  # absent from checkpoints before 0.4
         self.last_seq = {(int(a), int(inc)): int(seq) for a, inc, seq in state["last_seq"]}
         self.fifo.restore(state["fifo"])
         if state["heap"] is not None and self.algo.ranks_own_episodes:
@@ -244,6 +260,7 @@ class ReplayState:
             "batches_served": self.batches_served,
             "sample_requests": self.sample_requests,
             "sample_requests_rejected": self.sample_requests_rejected,
+            "request_rejections": dict(self.request_rejections),
             "not_ready_replies": self.not_ready_replies,
             "samples_per_insert": self.limiter.observed_samples_per_insert(),
             "samples_per_insert_target": self.limiter.samples_per_insert,

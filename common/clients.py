@@ -85,7 +85,7 @@ class ZenohEpisodeWriter(EpisodeWriter):
                                               priority=zenoh.Priority.DATA)
         self._throttle = session.declare_subscriber(keys.control_throttle, zenoh.handlers.RingChannel(1))
         self._paused = False
-        self.malformed_throttle = 0
+        self.throttle_rejections: collections.Counter[str] = collections.Counter()
 
     def paused(self) -> bool:
         """The latest throttle message's word (read from the topic now)."""
@@ -93,9 +93,9 @@ class ZenohEpisodeWriter(EpisodeWriter):
         if msg is not None:
             try:
                 self._paused = P.ThrottleNotice.decode(msg.payload.to_bytes()).paused
-            except P.ProtocolError:
-                self.malformed_throttle += 1
-                log.warning("ignoring malformed throttle message")
+            except P.ProtocolError as e:
+                self.throttle_rejections[e.reason] += 1
+                log.warning("ignoring malformed throttle message (%s): %s", e.reason, e)
         return self._paused
 
     def write(self, ep: P.Episode) -> bool:
@@ -115,7 +115,8 @@ class ZenohEpisodeWriter(EpisodeWriter):
         return True
 
     def stats(self) -> dict:
-        return super().stats() | {"malformed_throttle": self.malformed_throttle}
+        return super().stats() | {"malformed_throttle": sum(self.throttle_rejections.values()),
+                                  "throttle_rejections": dict(self.throttle_rejections)}
 
 
 class InProcessEpisodeWriter(EpisodeWriter):
@@ -155,6 +156,7 @@ class BatchStream:
         self.batches = 0
         self.not_ready = 0
         self.sample_errors = 0
+        self.reply_rejections: collections.Counter[str] = collections.Counter()  # malformed replies, by reason
         self.buffer_restarts = 0
         self.transitions_lost = 0
         #: the last reply said the learner is ahead of the actors (at the end of a run: nothing more will come)
@@ -193,6 +195,7 @@ class BatchStream:
             "batch_wait_ms_p99": float(np.percentile(waits, 99)),
             "not_ready_replies": self.not_ready,
             "sample_errors": self.sample_errors,
+            "reply_rejections": dict(self.reply_rejections),
             "buffer_restarts": self.buffer_restarts,
             "transitions_lost": self.transitions_lost,
         }
@@ -238,7 +241,8 @@ class ZenohBatchStream(BatchStream):
             batch = P.BatchReply.decode(reply.ok.payload.to_bytes())
         except P.ProtocolError as e:
             self.sample_errors += 1
-            log.warning("malformed batch reply: %s", e)
+            self.reply_rejections[e.reason] += 1
+            log.warning("malformed batch reply (%s): %s", e.reason, e)
             return None
         out = self._account(batch)
         if out is None:
@@ -348,7 +352,7 @@ class WeightsClient(Generic[PolicyT]):
         self.weights = initial
         self.policy: PolicyT = make_policy(initial)
         self.updates = 0
-        self.rejected = 0
+        self.rejections: collections.Counter[str] = collections.Counter()  # weights not taken, by reason
         self.latency_ms: collections.deque[float] = collections.deque(maxlen=100)
 
     def _offer(self, new: P.Weights) -> bool:
@@ -357,7 +361,7 @@ class WeightsClient(Generic[PolicyT]):
         try:
             policy = self._make_policy(new)
         except (P.ProtocolError, ValueError) as e:
-            self.rejected += 1
+            self.rejections[getattr(e, "reason", "unusable")] += 1
             log.warning("ignoring unusable weights (version %d): %s", new.version, e)
             return False
         self.weights, self.policy = new, policy
@@ -374,8 +378,17 @@ class WeightsClient(Generic[PolicyT]):
     def version(self) -> int:
         return self.weights.version
 
+    @property
+    def rejected(self) -> int:
+        return sum(self.rejections.values())
+
+    def _malformed(self, e: P.ProtocolError) -> None:
+        self.rejections[e.reason] += 1
+        log.warning("ignoring malformed weights (%s): %s", e.reason, e)
+
     def stats(self) -> dict:
         return {"policy_version": self.version, "weights_rejected": self.rejected,
+                "weights_rejections": dict(self.rejections),
                 "weights_latency_ms_p50": float(np.median(self.latency_ms)) if self.latency_ms else None}
 
 
@@ -406,8 +419,7 @@ class ZenohWeightsClient(WeightsClient[PolicyT]):
                     try:
                         return P.Weights.decode(reply.ok.payload.to_bytes())
                     except P.ProtocolError as e:
-                        self.rejected += 1
-                        log.warning("ignoring malformed weights reply: %s", e)
+                        self._malformed(e)
             return None
         finally:
             querier.undeclare()
@@ -419,8 +431,7 @@ class ZenohWeightsClient(WeightsClient[PolicyT]):
         try:
             new = P.Weights.decode(msg.payload.to_bytes())
         except P.ProtocolError as e:
-            self.rejected += 1
-            log.warning("ignoring malformed weights: %s", e)
+            self._malformed(e)
             return False
         return self._offer(new)
 
@@ -491,13 +502,15 @@ class StatsPublisher:
     """JSON stats on one key. DROP congestion control and low priority: stats are superseded every
     second, and a slow monitor must never hold a component back."""
 
-    def __init__(self, session: zenoh.Session, key: str) -> None:
+    def __init__(self, session: zenoh.Session, key: str, extra: Callable[[], dict] | None = None) -> None:
         self._pub = session.declare_publisher(key, encoding=zenoh.Encoding.APPLICATION_JSON,
                                               congestion_control=zenoh.CongestionControl.DROP,
                                               priority=zenoh.Priority.DATA_LOW)
+        self._extra = extra
 
     def put(self, stats: dict) -> None:
-        self._pub.put(P.Stats(stats).encode())
+        """Publish `stats` (and the `extra` counters every message of this component carries)."""
+        self._pub.put(P.Stats(stats | (self._extra() if self._extra else {})).encode())
 
 
 # ---------------------------------------------------------------------------
@@ -526,6 +539,28 @@ class Shutdown:
         self._pub.put(P.ShutdownNotice(reason).encode())
 
 
-def stop_on_shutdown(session: zenoh.Session, keys: P.Keys, stop: StopFlag) -> None:
+class ShutdownListener:
+    """Sets `stop` when anyone announces the end of the run; a malformed announcement is counted
+    (`rejections`, by reason) and ignored."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys, stop: StopFlag) -> None:
+        self._stop = stop
+        self.rejections: collections.Counter[str] = collections.Counter()
+        session.declare_subscriber(keys.control_shutdown, self._on)
+
+    def _on(self, sample: zenoh.Sample) -> None:
+        try:
+            notice = P.ShutdownNotice.decode(sample.payload.to_bytes())
+        except P.ProtocolError as e:
+            self.rejections[e.reason] += 1
+            log.warning("ignoring malformed shutdown message (%s): %s", e.reason, e)
+            return
+        self._stop.set(f"shutdown message ({notice.reason})")
+
+    def stats(self) -> dict:
+        return {"shutdown_rejections": dict(self.rejections)}
+
+
+def stop_on_shutdown(session: zenoh.Session, keys: P.Keys, stop: StopFlag) -> ShutdownListener:
     """Set `stop` when anyone announces the end of the run."""
-    session.declare_subscriber(keys.control_shutdown, lambda s: stop.set("shutdown message"))
+    return ShutdownListener(session, keys, stop)

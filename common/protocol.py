@@ -32,9 +32,13 @@ SCHEMA_VERSION = 1
 #: Largest episode message the buffer accepts by default (bytes). A 1000-step
 #: Humanoid episode is about 1.5 MB; 64 MB leaves room and still bounds memory.
 DEFAULT_MAX_EPISODE_BYTES = 64 * 1024 * 1024
-#: Hard bounds on what one sample query may ask for.
+#: Hard bounds on what one sample query may ask for: batches, rows per batch, rows in all
+#: (a GPU learner's 16 batches of 4,096 fit). The buffer also refuses a request whose reply
+#: would pass MAX_REPLY_BYTES for its env's observation and action sizes.
 MAX_BATCHES_PER_REQUEST = 64
 MAX_BATCH_SIZE = 65536
+MAX_ROWS_PER_REQUEST = 65536
+MAX_REPLY_BYTES = 64 * 1024 * 1024
 
 _RUN_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 
@@ -190,6 +194,26 @@ def _pack(msg: dict) -> bytes:
 INT64_MAX = 2**63 - 1
 
 
+def _int(msg: Mapping, name: str, low: int, high: int = INT64_MAX, default: int | None = None) -> int:
+    """An integer field within [low, high] (what it is stored in), or `default` when absent and allowed."""
+    if default is not None and name not in msg:
+        return default
+    value = _get(msg, name, int)
+    if not low <= value <= high:
+        raise ProtocolError("out_of_range", f"field {name!r} is {value}, outside [{low}, {high}]")
+    return value
+
+
+def _finite(msg: Mapping, name: str, default: float | None = None) -> float:
+    """A finite number field (an int is taken as a float), or `default` when absent and allowed."""
+    if default is not None and name not in msg:
+        return default
+    value = float(_get(msg, name, (float, int)))
+    if not math.isfinite(value):
+        raise ProtocolError("non_finite", f"field {name!r} is {value}")
+    return value
+
+
 def _get(msg: Mapping, name: str, types: type | tuple[type, ...]) -> Any:
     if name not in msg:
         raise ProtocolError("missing_field", f"field {name!r} is missing")
@@ -298,7 +322,7 @@ def validate_episode(ep: Episode, limits: EpisodeLimits) -> None:
     for name, value, low in (("actor_id", ep.actor_id, 0), ("seq", ep.seq, 0), ("policy_version", ep.policy_version, -1),
                              ("incarnation", ep.incarnation, 0)):
         if not low <= value <= INT64_MAX:
-            raise ProtocolError("bad_field", f"field {name!r} is {value}, outside [{low}, 2**63)")
+            raise ProtocolError("out_of_range", f"field {name!r} is {value}, outside [{low}, {INT64_MAX}]")
     obs, actions, rewards = ep.obs, ep.actions, ep.rewards
     if obs.ndim != 2 or actions.ndim != 2 or rewards.ndim != 1:
         raise ProtocolError("bad_shape", "obs and actions must be 2-D, rewards 1-D")
@@ -358,20 +382,18 @@ class Weights:
         })
 
     @classmethod
-    def decode(cls, payload: bytes) -> "Weights":
-        msg = _unpack_kind(payload, "weights")
-        version = _get(msg, "version", int)
+    def decode(cls, payload: bytes, max_bytes: int = DEFAULT_MAX_EPISODE_BYTES) -> "Weights":
+        msg = _unpack_kind(payload, "weights", max_bytes)
+        version = _int(msg, "version", 0)  # actors stamp it on every episode: int64, as the buffer stores it
         arch = _get(msg, "arch", dict)
         raw = _get(msg, "params", dict)
         params = {str(k): unpack_array(v, f"params.{k}", "<f4") for k, v in raw.items()}
         for k, a in params.items():
             if not np.isfinite(a).all():
                 raise ProtocolError("non_finite", f"weights {k!r} contain NaN or infinite values")
-        sent_at = msg.get("sent_at", 0.0)
-        incarnation = msg.get("incarnation", 0)  # absent from weights of learners before 0.2
-        if not isinstance(incarnation, int) or isinstance(incarnation, bool) or not 0 <= incarnation <= INT64_MAX:
-            raise ProtocolError("bad_field", "field 'incarnation' must be an int in [0, 2**63)")
-        return cls(version, params, arch, float(sent_at) if isinstance(sent_at, (int, float)) else 0.0, incarnation)
+        sent_at = _finite(msg, "sent_at", default=0.0)  # actors report latencies from it: finite
+        incarnation = _int(msg, "incarnation", 0, default=0)  # absent from weights of learners before 0.2
+        return cls(version, params, arch, sent_at, incarnation)
 
 
 def new_incarnation() -> int:
@@ -414,12 +436,18 @@ class SampleRequest:
             raise ProtocolError("bad_request", f"batches={batches} is outside [1, {MAX_BATCHES_PER_REQUEST}]")
         if not 2 <= batch_size <= MAX_BATCH_SIZE:
             raise ProtocolError("bad_request", f"batch_size={batch_size} is outside [2, {MAX_BATCH_SIZE}]")
+        if batches * batch_size > MAX_ROWS_PER_REQUEST:
+            raise ProtocolError("bad_request", f"{batches} batches of {batch_size} rows are {batches * batch_size} rows, "
+                                               f"more than {MAX_ROWS_PER_REQUEST} per request")
         disc = _get(msg, "disc_batch_size", int) if "disc_batch_size" in msg else 0
         window = _get(msg, "recent_window", int) if disc else 0
         if not 0 <= disc <= MAX_BATCH_SIZE:
             raise ProtocolError("bad_request", f"disc_batch_size={disc} is outside [0, {MAX_BATCH_SIZE}]")
         if disc and not 1 <= window <= INT64_MAX:
             raise ProtocolError("bad_request", f"recent_window={window} must be in [1, 2**63) with disc_batch_size")
+        if batches * disc > MAX_ROWS_PER_REQUEST:
+            raise ProtocolError("bad_request", f"{batches} x {disc} discriminator rows per class are more than "
+                                               f"{MAX_ROWS_PER_REQUEST} per request")
         return cls(batches, batch_size, disc, window)
 
 
@@ -506,22 +534,51 @@ class BatchReply:
             msg["retry_after_ms"] = int(self.retry_after_ms)
         return _pack(msg)
 
+    #: meta numbers the learner uses, and what they must be (the rest is informational)
+    META_RETURNS = ("expert_min_return", "expert_max_return")
+
     @classmethod
     def decode(cls, payload: bytes) -> "BatchReply":
+        """The reply, with every number the learner uses in range and every array shaped for `meta`."""
         msg = _unpack_map(payload)
         status = _get(msg, "status", str)
         meta = _get(msg, "meta", dict)
-        if status == "ok":
-            raw = _get(msg, "arrays", dict)
-            batch = Batch(**{k: unpack_array(raw.get(k), k, dt) for k, dt in Batch.WIRE.items()})
-            disc = None
-            if "disc_expert_obs" in raw:
-                disc = DiscriminatorRows(**{k.removeprefix("disc_"): unpack_array(raw.get(k), k, dt)
-                                            for k, dt in DiscriminatorRows.WIRE.items()})
-            return cls("ok", meta, batch, disc)
-        retry = msg.get("retry_after_ms", 0)
-        return cls(status, meta, reason=str(msg.get("reason", "")),
-                   retry_after_ms=retry if isinstance(retry, int) and 0 <= retry <= 60_000 else 0)
+        if status not in ("ok", "not_ready"):
+            raise ProtocolError("bad_field", f"status is {status!r}, expected 'ok' or 'not_ready'")
+        _int(meta, "env_steps", 0, default=0)
+        if not isinstance(meta.get("algo", ""), str):
+            raise ProtocolError("bad_field", "meta field 'algo' is not a string")
+        for name in cls.META_RETURNS:
+            if meta.get(name) is not None:
+                _finite(meta, name)
+        if status == "not_ready":
+            return cls(status, meta, reason=str(msg.get("reason", "")),
+                       retry_after_ms=_int(msg, "retry_after_ms", 0, 60_000, default=0))
+        n = _int(meta, "batches", 1, MAX_BATCHES_PER_REQUEST)
+        size = _int(meta, "batch_size", 2, MAX_BATCH_SIZE)
+        _int(meta, "online_rows", 1, size, default=size)
+        raw = _get(msg, "arrays", dict)
+        batch = Batch(**{k: unpack_array(raw.get(k), k, dt) for k, dt in Batch.WIRE.items()})
+        _check_rows(batch, n * size, "batch")
+        if batch.next_obs.shape != batch.obs.shape:
+            raise ProtocolError("bad_shape", "next_obs and obs differ in shape")
+        disc = None
+        if "disc_expert_obs" in raw:
+            disc = DiscriminatorRows(**{k.removeprefix("disc_"): unpack_array(raw.get(k), k, dt)
+                                        for k, dt in DiscriminatorRows.WIRE.items()})
+            _check_rows(disc, n * _int(meta, "disc_batch_size", 1, MAX_BATCH_SIZE), "discriminator rows")
+        return cls("ok", meta, batch, disc)
+
+
+def _check_rows(rows: _Rows, n: int, what: str) -> None:
+    """Every array of `rows` has `n` rows (2-D for observations and actions, 1-D for the rest) of finite values."""
+    for f in fields(rows):
+        a = getattr(rows, f.name)
+        two_d = f.name.endswith("obs") or f.name.endswith("actions")
+        if a.ndim != (2 if two_d else 1) or a.shape[0] != n:
+            raise ProtocolError("bad_shape", f"{what}: {f.name} has shape {a.shape}, expected {n} rows")
+        if a.dtype.kind == "f" and not np.isfinite(a).all():
+            raise ProtocolError("non_finite", f"{what}: {f.name} contains NaN or infinite values")
 
 
 # ---------------------------------------------------------------------------
@@ -554,7 +611,7 @@ class ShutdownNotice:
 
     @classmethod
     def decode(cls, payload: bytes) -> "ShutdownNotice":
-        return cls(str(_unpack_kind(payload, "shutdown", max_bytes=65536).get("reason", "")))
+        return cls(_get(_unpack_kind(payload, "shutdown", max_bytes=65536), "reason", str))
 
 
 @dataclass

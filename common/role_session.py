@@ -3,7 +3,8 @@
 `role_session` opens the session the options describe (`--connect`, `--listen`,
 `--zenoh-mode`, `--zenoh-config`), stops the role when anyone announces the end of the
 run, declares the role's liveliness token (`silcr/<run>/alive/<role>[/<id>]`) and its
-stats publisher, and gives the role its stats schedule. On the way out it withdraws
+stats publisher (every message carries `shutdown_rejections`: malformed shutdown
+messages, ignored), and gives the role its stats schedule. On the way out it withdraws
 the token, so the others see the role leave before its session closes.
 """
 
@@ -40,10 +41,10 @@ def role_session(cfg: Config, stop: StopFlag, role: str, ident: int | None = Non
     keys = P.Keys(cfg.run)
     spec = spec or EnvSpec.of(cfg.env)
     with open_session(session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)) as session:
-        stop_on_shutdown(session, keys, stop)
+        shutdown = stop_on_shutdown(session, keys, stop)
         token = session.liveliness().declare_token(keys.alive(role, ident))
         try:
-            yield RoleSession(spec, keys, session, StatsPublisher(session, keys.stats(role, ident)),
+            yield RoleSession(spec, keys, session, StatsPublisher(session, keys.stats(role, ident), shutdown.stats),
                               Every(cfg.stats_interval))
         finally:
             token.undeclare()

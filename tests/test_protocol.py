@@ -135,7 +135,7 @@ def test_sample_request_and_batch_reply_round_trip():
     n = 4
     batch = P.Batch(obs=np.zeros((n, 2)), actions=np.zeros((n, 1)), rewards=np.arange(n), next_obs=np.ones((n, 2)),
                     terminated=np.array([0, 1, 0, 0]), truncated=np.zeros(n), policy_version=np.arange(n))
-    back = P.BatchReply.decode(P.BatchReply("ok", {"env_steps": 5}, batch).encode())
+    back = P.BatchReply.decode(P.BatchReply("ok", {"env_steps": 5, "batches": 2, "batch_size": 2}, batch).encode())
     assert back.status == "ok" and back.meta["env_steps"] == 5 and back.disc is None
     assert back.batch.obs.dtype == np.float32 and back.batch.terminated.dtype == np.uint8
     np.testing.assert_array_equal(back.batch.rewards, [0, 1, 2, 3])
@@ -161,3 +161,149 @@ def test_key_contract():
     assert k.stats_actor(3) == "silcr/r1/stats/actor/3"
     assert (k.episodes, k.weights, k.sample) == ("silcr/r1/episodes", "silcr/r1/weights", "silcr/r1/sample")
     assert k.alive("actor", 2) == "silcr/r1/alive/actor/2"
+
+
+# --- every decoder, fuzzed: a message decodes to something every later stage can store and use,
+# --- or the decoder raises ProtocolError, and nothing else happens ---------------------------------
+
+MSGPACK_INTS = st.integers(-(2**63), 2**64 - 1)  # everything msgpack can carry
+_hostile = st.recursive(
+    st.none() | st.booleans() | MSGPACK_INTS | st.sampled_from([2**63, 2**64 - 1, -(2**63), -1, 0])
+    | st.floats() | st.sampled_from([float("nan"), float("inf"), -float("inf"), 1e308]) | st.text(max_size=8)
+    | st.binary(max_size=64),
+    lambda inner: st.lists(inner, max_size=4) | st.dictionaries(st.text(max_size=8), inner, max_size=4),
+    max_leaves=12,
+)
+
+
+@pytest.fixture(scope="module")
+def replay():
+    from silcr.buffer_service.replay import ReplayState
+    from silcr.common.config import Config
+    from silcr.common.envs import EnvSpec
+
+    state = ReplayState(Config(run="fuzz", env="InvertedPendulum-v5", algo="gasil", learning_starts=10,
+                               expert_capacity=1000, online_capacity=5000), EnvSpec.of("InvertedPendulum-v5"))
+    for i in range(20):
+        state.store(make_episode(10, ret=float(i), seq=i, start=100 * i))
+    return state
+
+
+def _mutated(valid: bytes, fields: dict) -> bytes:
+    msg = msgpack.unpackb(valid, raw=False) | fields
+    return msgpack.packb(msg, use_bin_type=True)
+
+
+def _fuzz(valid: bytes, decode, use):
+    """Random bytes, and the valid message with fields replaced by hostile values."""
+    keys = sorted(msgpack.unpackb(valid, raw=False))
+
+    @settings(max_examples=250, deadline=None)
+    @given(st.one_of(st.binary(max_size=512).map(lambda b: (b, None)),
+                     st.dictionaries(st.sampled_from(keys), _hostile, max_size=6).map(lambda f: (None, f))))
+    def run(case):
+        raw, fields = case
+        payload = raw if raw is not None else _mutated(valid, fields)
+        try:
+            obj = decode(payload)
+        except P.ProtocolError:
+            return
+        use(obj)
+
+    run()
+
+
+def test_fuzzed_episodes_are_storable_or_rejected(replay):
+    from silcr.buffer_service.replay import ReplayState
+    from silcr.common.config import Config
+    from silcr.common.envs import EnvSpec
+
+    def use(ep):
+        fresh = ReplayState(Config(run="f", env="InvertedPendulum-v5", learning_starts=0, expert_capacity=1000),
+                            EnvSpec.of("InvertedPendulum-v5"))
+        fresh.store(ep)  # int64 columns, rows, D_E: OverflowError or anything else fails the test
+        assert fresh.sample(P.SampleRequest(1, 8)).status == "ok"
+        P.Episode.decode(ep.encode(), LIMITS)
+
+    _fuzz(make_episode(3, ret=1.0, version=2).encode(), lambda b: P.Episode.decode(b, LIMITS), use)
+
+
+def test_fuzzed_weights_are_usable_or_rejected():
+    import time
+
+    from silcr.actor.policy import NumpyPolicy, initial_weights
+
+    def use(w):
+        np.int64(w.version)  # stamped on episodes, stored as int64
+        P.Stats({"latency_ms": 1000 * (time.time() - w.sent_at), "version": w.version}).encode()  # JSON, finite
+        try:
+            policy = NumpyPolicy(w, 4, 1)
+        except (P.ProtocolError, ValueError):  # what the weights client counts and ignores
+            return
+        assert np.isfinite(policy.sample(np.zeros((2, 4), np.float32), np.random.default_rng(0))).all()
+
+    _fuzz(initial_weights(4, 1, [8], 0).encode(), P.Weights.decode, use)
+
+
+def test_fuzzed_sample_requests_are_served_or_refused(replay):
+    def use(req):
+        try:
+            reply = replay.sample(req)
+        except P.ProtocolError:
+            return
+        P.BatchReply.decode(reply.encode())
+
+    _fuzz(P.SampleRequest(2, 8, 4, 50).encode(), P.SampleRequest.decode, use)
+
+
+def test_fuzzed_batch_replies_are_trainable_or_rejected(replay):
+    import torch
+
+    from silcr.learner.update import to_tensor
+
+    def use(reply):
+        if reply.status != "ok":
+            assert reply.retry_after_ms >= 0
+            return
+        n, size = int(reply.meta["batches"]), int(reply.meta["batch_size"])
+        online = int(reply.meta.get("online_rows", size))
+        versions = reply.batch.policy_version.reshape(n, size)  # the learner's lag accounting
+        assert versions[:, :online].size and 1 <= online <= size
+        for b in range(n):
+            rows = reply.batch.rows(b, size).map(lambda a: to_tensor(a, torch.device("cpu")))
+            assert rows.obs.shape[0] == rows.rewards.shape[0] == size and torch.isfinite(rows.rewards).all()
+        if reply.disc is not None:
+            m = reply.disc.expert_obs.shape[0] // n
+            assert reply.disc.rows(n - 1, m).recent_actions.shape[0] == m
+
+    _fuzz(replay.sample(P.SampleRequest(2, 8, 4, 50)).encode(), P.BatchReply.decode, use)
+
+
+def test_fuzzed_control_messages_are_typed_or_rejected():
+    _fuzz(P.ThrottleNotice(True).encode(), P.ThrottleNotice.decode, lambda t: isinstance(t.paused, bool) or pytest.fail())
+    _fuzz(P.ShutdownNotice("finished").encode(), P.ShutdownNotice.decode,
+          lambda s: isinstance(s.reason, str) or pytest.fail())
+
+
+@pytest.mark.parametrize("payload, decode, reason", [  # ids: what each case is
+    (_mutate(policy_version=2**63), lambda b: P.Episode.decode(b, LIMITS), "out_of_range"),
+    (_mutate(seq=-1), lambda b: P.Episode.decode(b, LIMITS), "out_of_range"),
+    (_pack({"v": 1, "kind": "weights", "version": 2**63, "arch": {}, "params": {}}), P.Weights.decode, "out_of_range"),
+    (_pack({"v": 1, "kind": "weights", "version": 1, "arch": {}, "params": {}, "sent_at": float("nan")}),
+     P.Weights.decode, "non_finite"),
+    (_pack({"v": 1, "kind": "sample", "batches": 64, "batch_size": 65536}), P.SampleRequest.decode, "bad_request"),
+    (_pack({"v": 1, "kind": "sample", "batches": 1, "batch_size": 8, "disc_batch_size": 8, "recent_window": 2**64 - 1}),
+     P.SampleRequest.decode, "bad_request"),
+    (_pack({"v": 1, "kind": "batch", "status": "not_ready", "meta": {"env_steps": 2**63}}), P.BatchReply.decode,
+     "out_of_range"),
+    (_pack({"v": 1, "kind": "batch", "status": "not_ready", "meta": {"expert_min_return": float("inf")}}),
+     P.BatchReply.decode, "non_finite"),
+    (_pack({"v": 1, "kind": "throttle", "paused": 2**63}), P.ThrottleNotice.decode, "bad_field"),
+    (_pack({"v": 1, "kind": "shutdown", "reason": 7}), P.ShutdownNotice.decode, "bad_field"),
+], ids=["episode-version-2^63", "episode-seq-negative", "weights-version-2^63", "weights-sent-at-nan",
+        "sample-rows-over-bound", "sample-window-2^64", "reply-env-steps-2^63", "reply-return-inf",
+        "throttle-not-bool", "shutdown-reason-not-str"])
+def test_numbers_out_of_range_are_rejected_with_a_reason(payload, decode, reason):
+    with pytest.raises(P.ProtocolError) as info:
+        decode(payload)
+    assert info.value.reason == reason

@@ -1,0 +1,101 @@
+"""The worst messages, sent over Zenoh by an outside client while a run trains: the run finishes.
+
+Every kind of message carries numbers the components store or use. Each case below
+crashed a component, or ended the run, before every decoder range-checked its fields
+(issue 18): an episode whose `policy_version` is 2^63 made the buffer raise while
+storing it in an int64 column; weights with such a version were taken by the actors,
+which then stamped it on every episode; any message on the shutdown key, garbage
+included, stopped every component. Now each is rejected and counted by reason, and
+the run trains to its budget.
+"""
+
+from __future__ import annotations
+
+import csv
+
+import msgpack
+import numpy as np
+
+from silcr.common import protocol as P
+from tests.conftest import make_episode
+from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
+
+
+def _pack(msg: dict) -> bytes:
+    return msgpack.packb({"v": P.SCHEMA_VERSION, **msg}, use_bin_type=True)
+
+
+def _episode(**fields) -> bytes:
+    """A 5-step InvertedPendulum-shaped episode with some fields replaced."""
+    return _pack(msgpack.unpackb(make_episode(5, ret=1.0, seq=10**6).encode(), raw=False) | fields)
+
+
+EPISODES = [  # each is rejected by the buffer, which keeps training
+    _episode(policy_version=2**63),
+    _episode(policy_version=2**64 - 1),
+    _episode(actor_id=2**64 - 1),
+    _episode(seq=-(2**63)),
+    _episode(incarnation=2**63),
+    _episode(episode_return=float("nan")),
+    _episode(length=2**63),
+]
+WEIGHTS = [  # each is rejected by the actors, which keep acting with the learner's weights
+    _pack({"kind": "weights", "version": 2**63, "incarnation": 1, "arch": {}, "params": {}}),
+    _pack({"kind": "weights", "version": 10**6, "incarnation": 1, "sent_at": float("nan"), "arch": {}, "params": {}}),
+    _pack({"kind": "weights", "version": 10**6, "incarnation": 2**64 - 1, "arch": {}, "params": {}}),
+]
+SAMPLE_REQUESTS = [  # each is refused by the buffer
+    _pack({"kind": "sample", "batches": 2**63, "batch_size": 8}),
+    _pack({"kind": "sample", "batches": 64, "batch_size": 65536}),
+    _pack({"kind": "sample", "batches": 1, "batch_size": 8, "disc_batch_size": 8, "recent_window": 2**64 - 1}),
+]
+CONTROL = {  # throttle: ignored by the actors; shutdown: stops nothing
+    "throttle": [_pack({"kind": "throttle", "paused": 2**63}), b"\xc1garbage"],
+    "shutdown": [_pack({"kind": "shutdown", "reason": 7}), _pack({"kind": "shutdown"}), b"\xc1garbage"],
+}
+
+
+def test_a_run_trains_to_its_budget_through_the_worst_messages(tmp_path):
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "hostile"
+    keys = P.Keys(run)
+    train = procs.start("train", "train", "--run", run, "--runs-dir", str(tmp_path / "runs"),
+                        "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--env", "InvertedPendulum-v5", "--hidden", "32", "32",
+                        "--learning-starts", "500", "--batch-size", "64", "--actors", "2", "--total-steps", "6000",
+                        "--eval-interval", "2000", "--eval-episodes", "2", "--stats-interval", "0.3")
+    try:
+        session = client_when_up(port)
+        stats = LatestJson(session, keys.stats_all)
+        wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 0, 120, "training to start")
+        episodes = session.declare_publisher(keys.episodes)
+        wait_for(lambda: episodes.matching_status.matching, 20, "the buffer")
+        for payload in EPISODES:
+            episodes.put(payload)
+        for payload in WEIGHTS:
+            session.put(keys.weights, payload)
+        refused = []
+        for payload in SAMPLE_REQUESTS:
+            for reply in session.get(keys.sample, payload=payload, timeout=10):
+                refused.append(reply.err is not None and reply.err.payload.to_string().startswith("bad_request"))
+        for payload in CONTROL["throttle"]:
+            session.put(keys.control_throttle, payload)
+        for payload in CONTROL["shutdown"]:
+            session.put(keys.control_shutdown, payload)
+        assert refused == [True] * len(SAMPLE_REQUESTS)
+        buf = wait_for(lambda: (b := stats.get(keys.stats_buffer)) and b["episodes_rejected"] >= len(EPISODES) and b,
+                       30, "the buffer to count every bad episode")
+        assert buf["rejections"].get("out_of_range", 0) >= 5 and buf["rejections"].get("non_finite", 0) >= 1
+        assert buf["request_rejections"] == {"bad_request": len(SAMPLE_REQUESTS)}
+        wait_for(lambda: sum(sum((stats.get(keys.stats_actor(i)) or {}).get("weights_rejections", {}).values())
+                             for i in (0, 1)) >= 2, 30, "the actors to reject the bad weights")
+        wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("shutdown_rejections", {}).get("bad_field", 0) >= 1
+                 and (stats.get(keys.stats_learner) or {}).get("shutdown_rejections", {}).get("missing_field", 0) >= 1,
+                 30, "the learner to count the malformed shutdown messages")
+        assert train.wait(600) == 0, procs.log("train")
+    finally:
+        procs.stop_all()
+    assert procs.orphans == []
+    rows = list(csv.DictReader(open(tmp_path / "runs" / run / "progress.csv")))
+    assert int(rows[-1]["env_steps"]) >= 6000 and int(rows[-1]["updates"]) >= 5000
+    assert np.isfinite(float(rows[-1]["eval_return"]))
