@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import collections
 import logging
+from collections.abc import Container
 import time
 from pathlib import Path
 from typing import Any
@@ -33,6 +34,20 @@ from .online_fifo import OnlineFifo
 from .rate_limiter import SamplesPerInsertLimiter
 
 log = logging.getLogger("buffer")
+
+
+def reserved_bytes(cfg: Config, spec: EnvSpec) -> int:
+    """The bytes D_O's and D_E's row storage reserves for `cfg`'s capacities and `spec`'s shapes.
+
+    Mirrors `OnlineFifo` and `ExpertHeap`: observation, action and reward rows of float32,
+    with their slack for whole episodes. Checked against the machine's memory before a run starts.
+    """
+    row = 4 * (spec.obs_dim + spec.act_dim + 1)
+    longest = min(spec.max_episode_steps or cfg.online_capacity, cfg.online_capacity)
+    rows = cfg.online_capacity + cfg.online_capacity // 32 + 2 * (longest + 1)
+    if algorithm(cfg.algo).ranks_own_episodes:
+        rows += cfg.expert_capacity + cfg.expert_capacity // 8 + 2
+    return rows * row
 
 
 class ReplayState:
@@ -138,12 +153,21 @@ class ReplayState:
         return {"algo": self.algo.name, "env_steps": self.transitions_received,
                 "episodes_received": self.episodes_received, "online_transitions": len(self.fifo)} | self._expert()
 
-    def answer(self, payload: bytes | None) -> P.BatchReply:
-        """Answer one sample query; raise `ProtocolError` for a malformed request."""
+    def answer(self, payload: bytes | None, learners: Container[int] | None = None) -> P.BatchReply:
+        """Answer one sample query; raise `ProtocolError` for a malformed request.
+
+        With `learners` (over Zenoh: the incarnations of the learners alive now), a
+        request that names none of them is refused: only the run's learner spends the
+        samples-per-insert budget, so an outside client's sampling cannot starve it.
+        """
         try:
             if payload is None:
                 raise P.ProtocolError("bad_request", "sample query carries no payload")
             req = P.SampleRequest.decode(payload)
+            if learners is not None and req.learner not in learners:
+                raise P.ProtocolError("not_the_learner", "only the run's learner samples: the request names "
+                                      + (f"learner {req.learner}, which is not alive" if req.learner else "no learner")
+                                      + " (docs/protocol.md, 'Sample request')")
         except P.ProtocolError as e:
             self.sample_requests += 1
             self._refused(e)

@@ -14,12 +14,13 @@ import logging
 import time
 
 from silcr.common import protocol as P
-from silcr.common.clients import ActorPresence, SampleQuery, Throttle, ZenohReplayServer
+from silcr.common.clients import Presence, SampleQuery, Throttle, ZenohReplayServer
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.inbox import Inbox
 from silcr.common.lifecycle import StopFlag
 from silcr.common.role_session import role_session
+from silcr.common.schedule import Every
 
 from . import snapshot
 from .replay import ReplayState, checkpoint_path, open_replay
@@ -43,13 +44,14 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
              cfg.algo, cfg.online_capacity, replay.heap.capacity if replay.heap is not None else "-", cfg.learning_starts)
     with role_session(cfg, stop, "buffer", spec=spec) as role:
         server = ZenohReplayServer(role.session, role.keys, inbox)
-        actors = ActorPresence(role.session, role.keys)
+        actors = Presence.actors(role.session, role.keys)
+        learners = Presence.learners(role.session, role.keys)
         throttle = Throttle(role.session, role.keys)
         paused = False
         while not stop.is_set():
             item = server.next(timeout=min(0.5, role.stats_due.remaining()))
             if isinstance(item, SampleQuery):
-                _serve(replay, item)
+                _serve(replay, item, learners)
             elif item is not None:
                 try:
                     replay.ingest(item)
@@ -77,11 +79,16 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
     return 0
 
 
-def _serve(replay: ReplayState, query: SampleQuery) -> None:
+_REFUSAL_LOGS: dict[str, Every] = {}  # one line per reason every 10 s: an outside client's flood must not flood the log
+
+
+def _serve(replay: ReplayState, query: SampleQuery, learners: Presence) -> None:
     try:
-        reply = replay.answer(query.payload)
+        reply = replay.answer(query.payload, learners)
     except P.ProtocolError as e:
-        log.warning("rejected sample request (%s): %s", e.reason, e)
+        if _REFUSAL_LOGS.setdefault(e.reason, Every(10.0)).due():
+            log.warning("rejected sample request (%s): %s (%d refused so far)", e.reason, e,
+                        replay.request_rejections[e.reason])
         query.refuse(f"{e.reason}: {e}")
         return
     query.answer(reply)

@@ -7,7 +7,8 @@
     throttle   Throttle.send(paused) (buffer)    EpisodeWriter.paused() (actor)
     shutdown   Shutdown.announce(reason)         stop_on_shutdown (everyone)
     stats      StatsPublisher.put(dict)          any Zenoh client (silcr monitor, TensorBoard's feeder)
-    liveliness (role_session declares tokens)    ActorPresence (buffer)
+    liveliness (role_session declares tokens;    Presence: the actors and the sampling learners
+               BatchStream its learner's)        alive now (buffer)
 
 The roles (`silcr.actor.service`, `silcr.learner.service`, `silcr.buffer_service.service`)
 are loops over these objects and never touch keys, codecs or Zenoh themselves. The
@@ -23,6 +24,7 @@ a component.
 from __future__ import annotations
 
 import collections
+import dataclasses
 import logging
 import threading
 import time
@@ -208,6 +210,11 @@ class ZenohBatchStream(BatchStream):
     def __init__(self, session: zenoh.Session, keys: P.Keys, request: P.SampleRequest, requests_in_flight: int,
                  stop: StopFlag) -> None:
         super().__init__(stop)
+        # The buffer serves only requests that name a live learner: this stream's token says it is one.
+        # (An outside client's sampling would spend the learner's samples-per-insert budget.)
+        if not request.learner:
+            request = dataclasses.replace(request, learner=P.new_incarnation())
+        self._token = session.liveliness().declare_token(keys.alive("learner", request.learner))
         self._request = request.encode()
         self._in_flight_limit = requests_in_flight
         self._querier = session.declare_querier(keys.sample, timeout=QUERY_TIMEOUT_S,
@@ -308,13 +315,23 @@ class ZenohReplayServer:
             query.refuse("buffer service is shutting down")
 
 
-class ActorPresence:
-    """The actors alive now, from their liveliness tokens (joins and leaves are logged)."""
+class Presence:
+    """The components of one role alive now, from their liveliness tokens `<key>/<id>` (joins and leaves are logged)."""
 
-    def __init__(self, session: zenoh.Session, keys: P.Keys) -> None:
+    def __init__(self, session: zenoh.Session, key_expr: str, role: str) -> None:
         self._alive: set[str] = set()
         self._lock = threading.Lock()
-        session.liveliness().declare_subscriber(keys.alive_actors, self._on, history=True)
+        self._role = role
+        session.liveliness().declare_subscriber(key_expr, self._on, history=True)
+
+    @classmethod
+    def actors(cls, session: zenoh.Session, keys: P.Keys) -> "Presence":
+        return cls(session, keys.alive_actors, "actor")
+
+    @classmethod
+    def learners(cls, session: zenoh.Session, keys: P.Keys) -> "Presence":
+        """The learners sampling now, by incarnation (`ZenohBatchStream` declares the token)."""
+        return cls(session, keys.alive_learners, "learner")
 
     def _on(self, sample: zenoh.Sample) -> None:
         who = str(sample.key_expr).rsplit("/", 1)[-1]
@@ -323,11 +340,15 @@ class ActorPresence:
                 self._alive.add(who)
             else:
                 self._alive.discard(who)
-        log.info("actor %s %s", who, "joined" if sample.kind == zenoh.SampleKind.PUT else "left")
+        log.info("%s %s %s", self._role, who, "joined" if sample.kind == zenoh.SampleKind.PUT else "left")
 
     def __len__(self) -> int:
         with self._lock:
             return len(self._alive)
+
+    def __contains__(self, ident: object) -> bool:
+        with self._lock:
+            return str(ident) in self._alive
 
 
 # ---------------------------------------------------------------------------

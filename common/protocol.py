@@ -134,6 +134,11 @@ class Keys:
     def alive_actors(self) -> str:
         return f"{self.prefix}/alive/actor/*"
 
+    @property
+    def alive_learners(self) -> str:
+        """The sampling learners' tokens, `alive/learner/<incarnation>`: the buffer serves only these."""
+        return f"{self.prefix}/alive/learner/*"
+
 
 # ---------------------------------------------------------------------------
 # Arrays
@@ -420,9 +425,13 @@ class SampleRequest:
     batch_size: int = 128
     disc_batch_size: int = 0
     recent_window: int = 0
+    #: the requesting learner's incarnation (as on its weights); over Zenoh the buffer serves only a live learner
+    learner: int = 0
 
     def encode(self) -> bytes:
         msg: dict[str, Any] = {"kind": "sample", "batches": self.batches, "batch_size": self.batch_size}
+        if self.learner:
+            msg["learner"] = self.learner
         if self.disc_batch_size:
             msg |= {"disc_batch_size": self.disc_batch_size, "recent_window": self.recent_window}
         return _pack(msg)
@@ -448,7 +457,8 @@ class SampleRequest:
         if batches * disc > MAX_ROWS_PER_REQUEST:
             raise ProtocolError("bad_request", f"{batches} x {disc} discriminator rows per class are more than "
                                                f"{MAX_ROWS_PER_REQUEST} per request")
-        return cls(batches, batch_size, disc, window)
+        learner = _int(msg, "learner", 0, default=0)
+        return cls(batches, batch_size, disc, window, learner)
 
 
 A = TypeVar("A")  # an array type: numpy arrays on the wire and in the buffer, torch tensors in the learner

@@ -8,6 +8,7 @@ stats key. The run ends when the budget is spent (the learner announces it) or o
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 
@@ -28,7 +29,9 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         lrn = Learner(cfg, role.spec, ZenohWeightsServer(role.session, role.keys))
         log.info("learner for run %s on %s: %s, networks %s, batch %d, %d env steps",
                  cfg.run, lrn.update.device, cfg.algo, cfg.hidden, cfg.batch_size, cfg.total_steps)
-        stream = ZenohBatchStream(role.session, role.keys, lrn.sample_request(), cfg.requests_in_flight, stop)
+        # The requests name the learner's incarnation (as its weights do): the buffer serves only a live learner.
+        request = dataclasses.replace(lrn.sample_request(), learner=lrn.books.incarnation)
+        stream = ZenohBatchStream(role.session, role.keys, request, cfg.requests_in_flight, stop)
         lrn.start()
         stream.wait_for_buffer()
         finished = False

@@ -12,6 +12,8 @@ the run trains to its budget.
 from __future__ import annotations
 
 import csv
+import itertools
+import threading
 
 import msgpack
 import numpy as np
@@ -99,3 +101,55 @@ def test_a_run_trains_to_its_budget_through_the_worst_messages(tmp_path):
     rows = list(csv.DictReader(open(tmp_path / "runs" / run / "progress.csv")))
     assert int(rows[-1]["env_steps"]) >= 6000 and int(rows[-1]["updates"]) >= 5000
     assert np.isfinite(float(rows[-1]["eval_return"]))
+
+
+def test_a_strangers_sampling_spends_none_of_the_learners_budget(tmp_path):
+    """An outside client sends legal sample requests all run long; the learner still makes every update its steps
+    are due. Before the buffer served only live learners, such a client took 31,533 batches in 8 s while the
+    learner made 200 updates, and the run finished "starved" with 3,016 updates for 47,327 env steps, exit 0."""
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "stranger"
+    keys = P.Keys(run)
+    total, starts = 6000, 500
+    train = procs.start("train", "train", "--run", run, "--runs-dir", str(tmp_path / "runs"),
+                        "--zenoh-listen", f"tcp/127.0.0.1:{port}", "--env", "InvertedPendulum-v5", "--hidden", "32", "32",
+                        "--learning-starts", str(starts), "--batch-size", "64", "--actors", "2",
+                        "--total-steps", str(total), "--eval-interval", "3000", "--eval-episodes", "2",
+                        "--stats-interval", "0.3")
+    served = refused = 0
+    stop = threading.Event()
+
+    def sample_all_run_long(session) -> None:
+        nonlocal served, refused
+        for request in itertools.cycle([P.SampleRequest(64, 256), P.SampleRequest(64, 256, learner=12345)]):
+            if stop.is_set():
+                return
+            for reply in session.get(keys.sample, payload=request.encode(), timeout=5):
+                if reply.ok is not None:
+                    served += P.BatchReply.decode(reply.ok.payload.to_bytes()).meta.get("batches", 0)
+                elif reply.err.payload.to_string().startswith("not_the_learner"):
+                    refused += 1
+
+    try:
+        session = client_when_up(port)
+        stats = LatestJson(session, keys.stats_all)
+        stranger = threading.Thread(target=sample_all_run_long, args=(session,), daemon=True)
+        stranger.start()
+        try:
+            wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 0, 120, "training to start")
+            assert train.wait(600) == 0, procs.log("train")
+        finally:
+            stop.set()
+            stranger.join(10)
+            session.close()  # else a Zenoh callback thread keeps the interpreter from exiting
+    finally:
+        procs.stop_all()
+    assert procs.orphans == []
+    assert served == 0 and refused > 100
+    last = list(csv.DictReader(open(tmp_path / "runs" / run / "progress.csv")))[-1]
+    steps, updates = int(last["env_steps"]), int(last["updates"])
+    # One update per env step after the warm-up (the actors run up to --spi-tolerance ahead at the end: 6,601
+    # env steps for 5,500 updates when measured). With the stranger served, the learner made its 5,500
+    # updates only after 274,469 env steps: the actors ran on while the stranger took the batches.
+    assert steps >= total and updates >= total - starts and updates >= 0.75 * (steps - starts), last

@@ -13,6 +13,7 @@ from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait
 
 RUN = "itest-buffer"
 KEYS = P.Keys(RUN)
+LEARNER = 4242  # the incarnation this test's learner token declares: the buffer serves only live learners
 ENV, OBS, ACT = "silcr/PointGoal-v0", 3, 2
 
 
@@ -38,9 +39,11 @@ def system(tmp_path_factory):
         "--learning-starts", "50", "--expert-capacity", "50", "--spi-tolerance", "1000", "--stats-interval", "0.2",
     )
     session = client_when_up(port)
+    token = session.liveliness().declare_token(KEYS.alive("learner", LEARNER))
     stats = LatestJson(session, KEYS.stats_all)
     wait_for(lambda: stats.get(KEYS.stats_buffer), 30, "buffer stats")
     yield procs, session, stats
+    token.undeclare()
     session.close()
     procs.stop_all()
 
@@ -69,7 +72,7 @@ def test_stats_are_json_with_the_contract_fields(system):
 
 def test_not_ready_during_warmup(system):
     _, session, _ = system
-    r = _query(session, P.SampleRequest(1, 8).encode())
+    r = _query(session, P.SampleRequest(1, 8, learner=LEARNER).encode())
     reply = P.BatchReply.decode(r.ok.payload.to_bytes())
     assert reply.status == "not_ready" and reply.reason == "warmup"
 
@@ -94,7 +97,7 @@ def test_episodes_arrive_bad_ones_are_rejected_and_batches_are_mixed(system):
     assert s["expert_episodes"] == 5 and s["expert_min_return"] == 5.0 and s["expert_max_return"] == 9.0
     assert procs.procs["buffer"].poll() is None
 
-    r = _query(session, P.SampleRequest(2, 16).encode())
+    r = _query(session, P.SampleRequest(2, 16, learner=LEARNER).encode())
     reply = P.BatchReply.decode(r.ok.payload.to_bytes())
     assert reply.status == "ok" and reply.meta["batches"] == 2
     rewards = reply.batch.rewards.reshape(2, 16)
@@ -111,8 +114,13 @@ def test_bad_sample_requests_get_an_error_reply_and_the_service_lives(system):
         r = _query(session, payload)
         assert r.err is not None
         assert r.err.payload.to_string().split(":")[0] in {"not_msgpack", "bad_request"}
-    r = _query(session, P.SampleRequest(1, 8).encode())
+    # legal requests from no learner, or from one that is not alive: refused, so they spend none of its budget
+    for stranger in (P.SampleRequest(1, 8), P.SampleRequest(1, 8, learner=LEARNER + 1)):
+        r = _query(session, stranger.encode())
+        assert r.err is not None and r.err.payload.to_string().startswith("not_the_learner:")
+    r = _query(session, P.SampleRequest(1, 8, learner=LEARNER).encode())
     assert P.BatchReply.decode(r.ok.payload.to_bytes()).status == "ok"
-    s = wait_for(lambda: (x := stats.get(KEYS.stats_buffer)) and x["sample_requests_rejected"] >= 3 and x, 10, "stats")
-    assert s["sample_requests_rejected"] == 3 and s["episodes_received"] == 10
+    s = wait_for(lambda: (x := stats.get(KEYS.stats_buffer)) and x["sample_requests_rejected"] >= 5 and x, 10, "stats")
+    assert s["sample_requests_rejected"] == 5 and s["episodes_received"] == 10
+    assert s["request_rejections"]["not_the_learner"] == 2
     assert procs.procs["buffer"].poll() is None
