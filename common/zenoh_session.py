@@ -50,6 +50,27 @@ def _common(conf: zenoh.Config, block_wait_us: int = BLOCK_WAIT_BEFORE_CLOSE_US)
     return conf
 
 
+_IP_PROTOCOLS = ("tcp", "udp", "tls", "quic", "ws")
+
+
+def check_endpoint(endpoint: str) -> str:
+    """`endpoint` if it is `<protocol>/<address>` with, for IP protocols, a host and a port in [1, 65535];
+    else `ValueError` with one line naming the problem (Zenoh's own message carries its source paths)."""
+    proto, sep, addr = endpoint.partition("/")
+    if not sep or not proto or not addr:
+        raise ValueError(f"{endpoint!r} is not a Zenoh endpoint: use <protocol>/<address>, e.g. tcp/127.0.0.1:7447")
+    if proto in _IP_PROTOCOLS:
+        host, colon, port = addr.split("?")[0].split("#")[0].rpartition(":")
+        if not colon or not host.strip("[]") or not port.isdigit() or not 1 <= int(port) <= 65535:
+            raise ValueError(f"{endpoint!r}: a {proto} endpoint needs <host>:<port> with a port in [1, 65535], "
+                             f"e.g. {proto}/127.0.0.1:7447")
+    try:
+        zenoh.Config().insert_json5("listen/endpoints", json.dumps([endpoint]))
+    except zenoh.ZError as e:
+        raise ValueError(f"{endpoint!r} is not a Zenoh endpoint: {str(e).split(' at /')[0]}") from None
+    return endpoint
+
+
 def session_config(
     connect: list[str] | None = None,
     listen: list[str] | None = None,

@@ -111,7 +111,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
 
 def _check_runtime_options(cfg: Config, role: str) -> None:
     """Options that can only be checked by trying them: the env id and the Zenoh endpoints."""
-    from silcr.common.zenoh_session import session_config
+    from silcr.common.zenoh_session import check_endpoint, session_config
 
     if role != "monitor":
         from silcr.common.envs import EnvSpec
@@ -127,6 +127,7 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
                                                    f"{cfg.env}, which runs up to {spec.time_limit} steps; D_E would stay "
                                                    f"empty or stop admitting longer episodes. Use at least {spec.time_limit}")
         if role in ("train", "buffer"):
+            _check_memory(cfg, role, spec)
             from pathlib import Path
 
             from silcr.common.demos import DemosError, load_demos
@@ -137,10 +138,40 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
                         load_demos(Path(path), spec)
                 except DemosError as e:
                     raise ConfigError(option, str(e)) from None
+    for option, endpoints in (("--connect", cfg.connect), ("--listen", cfg.listen),
+                              ("--zenoh-listen", [cfg.zenoh_listen] if role == "train" else [])):
+        for endpoint in endpoints:
+            try:
+                check_endpoint(endpoint)
+            except ValueError as e:
+                raise ConfigError(option, str(e)) from None
     try:
         session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
     except ValueError as e:
         raise ConfigError("--connect/--listen/--zenoh-config", str(e)) from None
+
+
+def _check_memory(cfg: Config, role: str, spec: "EnvSpec") -> None:
+    """Buffer capacities and actor processes that this machine's available memory cannot hold."""
+    from silcr.buffer_service.replay import reserved_bytes
+    from silcr.common.resources import ACTOR_RSS_BYTES, MAX_LOCAL_ACTORS, available_memory, gib
+
+    if role == "train" and cfg.actors > MAX_LOCAL_ACTORS:
+        raise ConfigError("--actors", f"{cfg.actors} is more than {MAX_LOCAL_ACTORS} actors on one machine; use "
+                                      f"--envs-per-actor for more envs per process, or start actors on other "
+                                      f"machines with `silcr actor` (docs/deployment.md)")
+    available = available_memory()
+    if available is None:
+        return
+    buffer = reserved_bytes(cfg, spec)
+    if buffer > available:
+        option = "--online-capacity" if cfg.online_capacity * 4 >= cfg.expert_capacity else "--expert-capacity"
+        raise ConfigError(option, f"D_O of {cfg.online_capacity:,} and D_E of {cfg.expert_capacity:,} transitions of "
+                                  f"{cfg.env} would reserve {gib(buffer)}; this machine has {gib(available)} available")
+    actors = cfg.actors * ACTOR_RSS_BYTES if role == "train" and not cfg.single_process else 0
+    if buffer + actors > available:
+        raise ConfigError("--actors", f"{cfg.actors} actor processes (about {gib(actors)}) and the buffer's "
+                                      f"{gib(buffer)} need more than the {gib(available)} this machine has available")
 
 
 def command(*args: str) -> list[str]:
@@ -181,6 +212,14 @@ def main(argv: list[str] | None = None) -> int:
 
         return run_bench(args.which, Path(args.out), args.device, args.quick)
     if role == "router":
+        from silcr.common.zenoh_session import check_endpoint
+
+        for option, endpoints in (("--listen", args.listen), ("--connect", args.connect)):
+            for endpoint in endpoints:
+                try:
+                    check_endpoint(endpoint)
+                except ValueError as e:
+                    subs[role].error(f"{option}: {e}")
         setup_logging("router")
         from silcr.deploy.router import run_router
 

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import subprocess
+from pathlib import Path
 import sys
 import tomllib
 
@@ -58,8 +59,9 @@ def test_bad_toml_is_a_config_error(tmp_path, text, needle):
         _resolve(["--config", str(f)])
 
 
-def _cli(*args: str) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "silcr.cli", *args], capture_output=True, text=True, timeout=120)
+def _cli(*args: str, cwd: Path | None = None) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "silcr.cli", *args], capture_output=True, text=True, timeout=120,
+                          cwd=cwd)
 
 
 @pytest.mark.parametrize(
@@ -91,14 +93,32 @@ def _cli(*args: str) -> subprocess.CompletedProcess:
         (["train", "--algo", "gasil", "--disc-batch-size", "0"], "--disc-batch-size"),
         (["train", "--algo", "gasil", "--recent-window", "0"], "--recent-window"),
         (["train", "--algo", "gasil", "--env", "silcr/Hopper-v5", "--reward", "dense"], "--reward"),
+        # checked before anything starts (issue 18): these printed a traceback, forked, or died of MemoryError
+        (["train", "--zenoh-listen", "garbage"], "--zenoh-listen: 'garbage' is not a Zenoh endpoint"),
+        (["train", "--zenoh-listen", "tcp/127.0.0.1:99999"], "--zenoh-listen"),
+        (["train", "--zenoh-listen", "tcp/:7447"], "--zenoh-listen"),
+        (["router", "--listen", "garbage"], "--listen"),
+        (["train", "--actors", "100000"], "--actors: 100000 is more than 1024"),
+        (["train", "--online-capacity", "99999999999999999"], "--online-capacity"),
+        (["buffer", "--run", "x", "--algo", "silcr", "--expert-capacity", "99999999999999999"], "--expert-capacity"),
     ],
 )
-def test_bad_options_exit_2_with_one_line_and_no_traceback(args, needle):
-    r = _cli(*args)
+def test_bad_options_exit_2_with_one_line_and_no_traceback(args, needle, tmp_path):
+    r = _cli(*args, cwd=tmp_path)
     assert r.returncode == 2, r.stderr
     assert "Traceback" not in r.stderr
     err_lines = [l for l in r.stderr.splitlines() if "error" in l]
     assert len(err_lines) == 1 and needle in err_lines[0], r.stderr
+    # no run directory, no config.toml: nothing written (MuJoCo itself logs a deprecation warning of
+    # HalfCheetah's XML to MUJOCO_LOG.TXT in the working directory when the env is made)
+    assert [p.name for p in tmp_path.iterdir() if p.name != "MUJOCO_LOG.TXT"] == []
+
+
+def test_a_capacity_the_machine_cannot_hold_is_one_line_through_a_config_file(tmp_path):
+    (tmp_path / "big.toml").write_text("online_capacity = 99999999999999999\n")
+    r = _cli("train", "--run", "big", "--config", "big.toml", cwd=tmp_path)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and "would reserve" in r.stderr, r.stderr
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["big.toml"]
 
 
 def test_every_subcommand_has_help():

@@ -1,0 +1,37 @@
+"""What one machine can hold: checked before a run starts, so that a bad option is one line, not a crash.
+
+A buffer capacity or an actor count that the machine cannot hold used to fail late and
+repeatedly: `online_capacity = 99999999999999999` raised `MemoryError` in the buffer five
+times (once per restart) before the run exited 1, and `--actors 100000` started forking.
+"""
+
+from __future__ import annotations
+
+import os
+
+#: `silcr train` starts one process per actor. Each holds a Zenoh session and its envs and
+#: is about 85 MB resident (docs/reliability.md, the soak test); 1,024 of them need about
+#: 87 GB and more processes than a default `ulimit -u` on many hosts. More envs per process
+#: (`--envs-per-actor`) or actors started on other machines (`silcr actor`) scale further.
+MAX_LOCAL_ACTORS = 1024
+#: resident memory of one actor process, rounded up from the soak test's 84.8 MB
+ACTOR_RSS_BYTES = 90 * 2**20
+
+
+def available_memory() -> int | None:
+    """Bytes the kernel says can be allocated without swapping (MemAvailable), or None where unknown."""
+    try:
+        with open("/proc/meminfo") as f:
+            for line in f:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except (OSError, ValueError, IndexError):
+        pass
+    try:
+        return os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_AVPHYS_PAGES")
+    except (ValueError, OSError, AttributeError):
+        return None
+
+
+def gib(n: float) -> str:
+    return f"{n / 2**30:,.1f} GiB"
