@@ -83,7 +83,7 @@ def _endpoint_host_port(endpoint: str) -> tuple[str, int] | None:
         return None
 
 
-def _port_in_use(endpoint: str) -> bool:
+def port_in_use(endpoint: str) -> bool:
     hp = _endpoint_host_port(endpoint)
     if hp is None or not endpoint.startswith("tcp/"):
         return False
@@ -145,11 +145,7 @@ def _sigterm_as_interrupt(signum: int, frame: object) -> None:
 def run_train(cfg: Config) -> int:
     run_dir = cfg.run_dir
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
-    cfg.save(run_dir / "config.toml")
-    if _port_in_use(cfg.zenoh_listen):
-        print(f"silcr train: error: --zenoh-listen {cfg.zenoh_listen} is already in use (another run?); pick another port",
-              file=sys.stderr)
-        return 2
+    cfg.save(run_dir / "config.toml")  # the CLI checked the port and holds the run directory's lock
     child_cfg = Config(**cfg.to_dict())
     if not child_cfg.connect:
         child_cfg.connect = [cfg.zenoh_listen]
@@ -166,7 +162,7 @@ def run_train(cfg: Config) -> int:
     try:
         run.start("router", cfg, "router")
         deadline = time.monotonic() + 15
-        while not _port_in_use(cfg.zenoh_listen):
+        while not port_in_use(cfg.zenoh_listen):
             if not run.procs["router"].is_alive() or time.monotonic() > deadline:
                 print(f"silcr train: error: the Zenoh router did not start on {cfg.zenoh_listen}:\n"
                       f"{_tail(run.logs / 'router.log')}", file=sys.stderr)

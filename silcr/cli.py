@@ -242,13 +242,26 @@ def main(argv: list[str] | None = None) -> int:
         subs[role].error(str(e))
 
     if role == "train":
-        if cfg.single_process:
-            from silcr.deploy.single_process import run_single_process
+        from silcr.common.run_lock import RunInUse, check_free, hold
 
-            return run_single_process(cfg)
-        from silcr.deploy.local import run_train
+        try:  # in this order: a live run of the same name is the likelier reason for a busy port
+            check_free(cfg.run_dir)
+            if not cfg.single_process:
+                from silcr.deploy.local import port_in_use
 
-        return run_train(cfg)
+                if port_in_use(cfg.zenoh_listen):
+                    raise ConfigError("--zenoh-listen", f"{cfg.zenoh_listen} is already in use (another run?); "
+                                                        f"pick another port")
+            with hold(cfg.run_dir):  # for the run's life: one run directory, one run
+                if cfg.single_process:
+                    from silcr.deploy.single_process import run_single_process
+
+                    return run_single_process(cfg)
+                from silcr.deploy.local import run_train
+
+                return run_train(cfg)
+        except (RunInUse, ConfigError) as e:
+            subs[role].error(str(e))
     stop = StopFlag().install_signal_handlers()
     if role == "monitor":
         from silcr.deploy.monitor import run_monitor

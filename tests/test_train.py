@@ -231,3 +231,4 @@ def test_router_port_in_use_is_a_clear_error(tmp_path):
             capture_output=True, text=True, timeout=60, cwd=REPO,
         )
     assert r.returncode == 2 and "already in use" in r.stderr and "Traceback" not in r.stderr
+    assert list(tmp_path.iterdir()) == []  # refused before it wrote a run directory
