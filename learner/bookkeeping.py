@@ -40,7 +40,8 @@ def _mean_lag(current: int, versions: np.ndarray) -> float | None:
 class Bookkeeping:
     """Everything a run keeps around the update."""
 
-    COUNTERS = ("updates", "policy_version", "env_steps", "next_eval", "evals", "last_eval_return")
+    COUNTERS = ("updates", "policy_version", "env_steps", "next_eval", "evals", "last_eval_return",
+                "checkpoints_failed")
 
     def __init__(self, cfg: Config, spec: EnvSpec, update: Update, weights: WeightsServer) -> None:
         self.cfg, self.spec = cfg, spec
@@ -55,6 +56,7 @@ class Bookkeeping:
         self.evals = 0
         self.last_eval_return: float | None = None
         self.last_eval_updates = -1
+        self.checkpoints_failed = 0
         self.checkpoint_path = cfg.run_dir / "checkpoints" / "learner.pt"
         # --resume continues from a checkpoint when there is one, so the same command
         # serves a first start and every restart (launcher, sweep, docker restart policy).
@@ -82,13 +84,24 @@ class Bookkeeping:
 
     def restore(self, counters: dict[str, Any]) -> None:
         for name in self.COUNTERS:
-            setattr(self, name, counters[name])
+            setattr(self, name, counters.get(name, 0) if name == "checkpoints_failed" else counters[name])  # 0.4
 
-    def checkpoint(self) -> None:
+    def checkpoint(self) -> bool:
+        """Write the learner checkpoint; a failure (a full disk, a directory made unwritable) is counted in
+        `checkpoints_failed` and training goes on: the previous checkpoint stays whole (`write_atomic`), and
+        dying here would only restart the learner from that older checkpoint, losing more updates."""
         t0 = time.monotonic()
-        save_checkpoint(self.checkpoint_path,
-                        self.update.state() | {"counters": self.state(), "config": self.cfg.to_dict()})
+        try:
+            save_checkpoint(self.checkpoint_path,
+                            self.update.state() | {"counters": self.state(), "config": self.cfg.to_dict()})
+        except (OSError, RuntimeError) as e:  # torch.save reports a failed write as RuntimeError
+            self.checkpoints_failed += 1
+            if self.checkpoints_failed == 1:
+                log.warning("checkpoint at %d updates failed (%s); training goes on, and failures are counted in "
+                            "checkpoints_failed (stats, progress.csv)", self.updates, e)
+            return False
         log.info("checkpoint at %d updates written in %.2fs", self.updates, time.monotonic() - t0)
+        return True
 
     # -- what the buffer says -------------------------------------------------------------
     def see(self, meta: dict[str, Any]) -> None:
@@ -163,7 +176,9 @@ class Bookkeeping:
                 self.evaluate()
             log.info("finished: %d env steps, %d updates, last eval return %s", self.env_steps, self.updates,
                      self.last_eval_return)
-        self.checkpoint()
+        if not self.checkpoint():
+            log.error("the final checkpoint could not be written (%d checkpoint(s) failed): --resume would continue "
+                      "from the last one that was", self.checkpoints_failed)
         self.progress.close()
 
     # -- records ---------------------------------------------------------------------
@@ -193,6 +208,7 @@ class Bookkeeping:
             "updates_per_s": self.updates / max(elapsed, 1e-9),
             **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS + GASIL_COLUMNS},
             **{k: self.buffer_meta.get(k) for k in EXPERT_COLUMNS},
+            "checkpoints_failed": self.checkpoints_failed,
         })
         log.info("eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f, %.1fs)",
                  self.env_steps, self.updates, mean, std, length, time.monotonic() - t0)
@@ -209,6 +225,7 @@ class Bookkeeping:
             "total_steps": self.cfg.total_steps,
             "last_eval_return": self.last_eval_return,
             "updates_per_s": self.updates / max(elapsed, 1e-9),
+            "checkpoints_failed": self.checkpoints_failed,
             "duty_cycle": self.update_time / max(elapsed, 1e-9),
             "policy_lag_mean": float(np.mean(self.policy_lag)) if self.policy_lag else None,
             "expert_age_mean": float(np.mean(self.expert_age)) if self.expert_age else None,

@@ -30,6 +30,7 @@ PROGRESS_COLUMNS = [
     *DIVERGENCE_COLUMNS,
     *EXPERT_COLUMNS,
     *GASIL_COLUMNS,
+    "checkpoints_failed",  # learner checkpoints that could not be written (silcr 0.4)
 ]
 
 
