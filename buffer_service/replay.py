@@ -84,6 +84,7 @@ class ReplayState:
         self.request_rejections: collections.Counter[str] = collections.Counter()  # by reason
         self.not_ready_replies = 0
         self.last_episode_version = -1
+        self.episodes_missing = 0
         # Last sequence number per (actor id, incarnation): an episode is never stored twice.
         self.last_seq: dict[tuple[int, int], int] = {}
         self.started = time.time()
@@ -113,10 +114,14 @@ class ReplayState:
         try:
             ep = P.Episode.decode(payload, self.limits)
         except P.ProtocolError as e:
-            self.rejections[e.reason] += 1
+            self.reject(e)
             raise
         self.store(ep)
         return ep
+
+    def reject(self, e: P.ProtocolError) -> None:
+        """Count an episode message rejected before it was decoded (an oversized one, by its size alone)."""
+        self.rejections[e.reason] += 1
 
     def store(self, ep: P.Episode) -> None:
         """Store a decoded episode (an in-process actor's, or a message's); a repeated one is rejected and counted."""
@@ -126,6 +131,11 @@ class ReplayState:
             raise P.ProtocolError(
                 "duplicate", f"actor {ep.actor_id} (incarnation {ep.incarnation}) sent seq {ep.seq} again"
             )
+        last = self.last_seq.get(sender)
+        if last is not None and ep.seq > last + 1:
+            # Sequence numbers count every episode an actor publishes: a gap is episodes that were
+            # sent and are not here (lost on the way, rejected, or received before a buffer restart).
+            self.episodes_missing += ep.seq - last - 1
         if len(self.last_seq) >= 65_536:  # bound the table: forget the oldest senders
             del self.last_seq[next(iter(self.last_seq))]
         self.last_seq[sender] = ep.seq
@@ -236,7 +246,8 @@ class ReplayState:
         """Everything a restart needs, each table and the limiter providing its own part (`snapshot` writes it)."""
         return {
             "counters": {name: getattr(self, name) for name in self.COUNTERS} | {"rejections": dict(self.rejections),
-                                                                                 "request_rejections": dict(self.request_rejections)},
+                                                                                 "request_rejections": dict(self.request_rejections),
+                                                                                 "episodes_missing": self.episodes_missing},
             "last_seq": [[a, inc, seq] for (a, inc), seq in self.last_seq.items()],
             "fifo": self.fifo.state(),
             # SQIL's D_E is the demonstrations, loaded again from --demos at every start.
@@ -251,6 +262,7 @@ class ReplayState:
             setattr(self, name, int(c[name]))
         self.rejections.update(c["rejections"])
         self.request_rejections.update(c.get("request_rejections", {}))  # absent from checkpoints before 0.4
+        self.episodes_missing = int(c.get("episodes_missing", 0))  # the same
         self.last_seq = {(int(a), int(inc)): int(seq) for a, inc, seq in state["last_seq"]}
         self.fifo.restore(state["fifo"])
         if state["heap"] is not None and self.algo.ranks_own_episodes:
@@ -280,6 +292,7 @@ class ReplayState:
             "episodes_received": self.episodes_received,
             "transitions_received": self.transitions_received,
             "episodes_rejected": sum(self.rejections.values()),
+            "episodes_missing": self.episodes_missing,
             "rejections": dict(self.rejections),
             "batches_served": self.batches_served,
             "sample_requests": self.sample_requests,

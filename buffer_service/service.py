@@ -18,7 +18,8 @@ from silcr.common.clients import Presence, SampleQuery, Throttle, ZenohReplaySer
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.inbox import Inbox
-from silcr.common.lifecycle import StopFlag
+from silcr.common.lifecycle import EXIT_CANNOT_START, StopFlag
+from silcr.common.resources import release_free_memory
 from silcr.common.role_session import role_session
 from silcr.common.schedule import Every
 
@@ -33,17 +34,17 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
     try:
         replay, snap = open_replay(cfg, spec)
     except snapshot.SnapshotError as e:
-        log.error("cannot resume: %s", e)
-        return 1
+        log.error("cannot start: %s", e)
+        return EXIT_CANNOT_START
     inbox = Inbox()
     checkpoints = snapshot.PeriodicCheckpoints(checkpoint_path(cfg), cfg.buffer_checkpoint_interval, inbox=inbox)
-    checkpoints.restore_parts(snap)
+    checkpoints.restore_parts(snap, replay)
     restored = {} if snap is None else {"restored_transitions": snap.transitions,
                                         "restored_checkpoint_age_s": time.time() - snap.header["written_at"]}
     log.info("buffer for run %s: %s, algo %s, D_O %d, D_E %s, learning starts after %d transitions", cfg.run, cfg.env,
              cfg.algo, cfg.online_capacity, replay.heap.capacity if replay.heap is not None else "-", cfg.learning_starts)
     with role_session(cfg, stop, "buffer", spec=spec) as role:
-        server = ZenohReplayServer(role.session, role.keys, inbox)
+        server = ZenohReplayServer(role.session, role.keys, inbox, cfg.max_episode_bytes)
         actors = Presence.actors(role.session, role.keys)
         learners = Presence.learners(role.session, role.keys)
         throttle = Throttle(role.session, role.keys)
@@ -52,6 +53,10 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
             item = server.next(timeout=min(0.5, role.stats_due.remaining()))
             if isinstance(item, SampleQuery):
                 _serve(replay, item, learners)
+            elif isinstance(item, P.ProtocolError):  # judged by its size alone, in the receiving thread
+                replay.reject(item)
+                log.warning("rejected episode (%s): %s", item.reason, item)
+                release_free_memory()
             elif item is not None:
                 try:
                     replay.ingest(item)
@@ -73,9 +78,9 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
                 } | checkpoints.stats() | restored)
         server.close()
     checkpoints.final(replay)
-    log.info("buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d batches served",
+    log.info("buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d missing, %d batches served",
              stop.reason, replay.episodes_received, replay.transitions_received, sum(replay.rejections.values()),
-             replay.batches_served)
+             replay.episodes_missing, replay.batches_served)
     return 0
 
 

@@ -266,13 +266,20 @@ class PeriodicCheckpoints:
         self.writer = BackgroundWriter(path)
         self.parts: dict[str, Part] = {**parts, "writer": self.writer}
         self._every = Every(interval, first_now=False, never_if_zero=True)
+        self._restored: tuple[int, ...] | None = None
 
-    def restore_parts(self, snap: Snapshot | None) -> None:
-        """Put back the parts' counters a restored snapshot holds."""
+    @staticmethod
+    def _activity(replay: "ReplayState") -> tuple[int, ...]:
+        """What changes whenever the state does: episodes offered, sample requests answered."""
+        return replay.episodes_received, sum(replay.rejections.values()), replay.sample_requests
+
+    def restore_parts(self, snap: Snapshot | None, replay: "ReplayState") -> None:
+        """Put back the parts' counters a restored snapshot holds; remember what it held."""
         if snap is not None:
             for name, part in self.parts.items():
                 if name in snap.parts:
                     part.restore(snap.parts[name])
+            self._restored = self._activity(replay)
 
     def maybe(self, replay: "ReplayState", now: float | None = None) -> None:
         if self._every.due(now):
@@ -280,6 +287,11 @@ class PeriodicCheckpoints:
 
     def final(self, replay: "ReplayState") -> None:
         self.writer.join()
+        if self._restored == self._activity(replay) and self.writer.written == 0:
+            # Nothing came in since the checkpoint it restored (another component could not start,
+            # say): leave that file as it is rather than rewrite it.
+            log.info("nothing changed since the checkpoint it resumed from; %s left as it is", self.writer.path)
+            return
         t0 = time.monotonic()
         try:
             write(self.writer.path, take(replay, **self.parts))

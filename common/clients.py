@@ -300,13 +300,26 @@ class ZenohReplayServer:
     what arrives to one bounded `Inbox` (see there: a full inbox back-pressures the actors, so no
     episode is dropped), read by the service's one thread with `next()`."""
 
-    def __init__(self, session: zenoh.Session, keys: P.Keys, inbox: Inbox) -> None:
+    def __init__(self, session: zenoh.Session, keys: P.Keys, inbox: Inbox,
+                 max_episode_bytes: int = P.DEFAULT_MAX_EPISODE_BYTES) -> None:
         self.inbox = inbox
-        session.declare_subscriber(keys.episodes, lambda s: inbox.put_data(s.payload.to_bytes()))
+        self.max_episode_bytes = max_episode_bytes
+        session.declare_subscriber(keys.episodes, self._on_episode)
         session.declare_queryable(keys.sample, lambda q: inbox.put_request(SampleQuery(q, keys.sample)))
 
-    def next(self, timeout: float) -> bytes | SampleQuery | None:
-        """A waiting sample query (first), else an episode message, else None after `timeout` s."""
+    def _on_episode(self, sample: zenoh.Sample) -> None:
+        # The size first, from Zenoh's buffer: an oversized message is never copied into Python
+        # (three of 240 MB left the buffer 500 MB larger), only its rejection is queued.
+        size = len(sample.payload)
+        if size > self.max_episode_bytes:
+            self.inbox.put_data(P.ProtocolError("oversized", f"message of {size} bytes exceeds the limit of "
+                                                             f"{self.max_episode_bytes}"))
+        else:
+            self.inbox.put_data(sample.payload.to_bytes())
+
+    def next(self, timeout: float) -> bytes | P.ProtocolError | SampleQuery | None:
+        """A waiting sample query (first), else an episode message (or the rejection of one too large to
+        copy), else None after `timeout` s."""
         return self.inbox.get(timeout)
 
     def close(self) -> None:

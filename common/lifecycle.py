@@ -13,6 +13,10 @@ import signal
 import sys
 import threading
 
+#: A component exits with this when it cannot start from its inputs (a corrupt or foreign
+#: checkpoint): restarting it would fail the same way, so `silcr train` does not, and exits 2.
+EXIT_CANNOT_START = 3
+
 
 class StopFlag:
     def __init__(self, watch_parent: bool = False) -> None:

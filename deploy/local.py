@@ -4,7 +4,7 @@ Starts a Zenoh router, the buffer service, the learner and N actors with the
 `spawn` start method (a forked child of a process with a Zenoh session hangs
 or talks to nobody), shows a progress bar fed by the stats topics, restarts a
 component that dies (actors fresh, buffer and learner from their checkpoints, up
-to --max-restarts), and ends everything when the learner finishes, a component
+to --max-restarts; the router too), and ends everything when the learner finishes, a component
 dies for good, or on Ctrl-C. Each
 child writes its log to `<run dir>/logs/<component>.log` and stops by itself
 if this process disappears.
@@ -27,7 +27,7 @@ from silcr.common import protocol as P
 from silcr.common import seeds
 from silcr.common.clients import Shutdown
 from silcr.common.config import Config
-from silcr.common.lifecycle import StopFlag, setup_logging
+from silcr.common.lifecycle import EXIT_CANNOT_START, StopFlag, setup_logging
 from silcr.common.zenoh_session import open_session, session_config
 from silcr.deploy.console import TrainingDisplay
 from silcr.deploy.monitor import StatsSnapshot
@@ -169,15 +169,20 @@ def run_train(cfg: Config) -> int:
                 run.stop_all(order)
                 return 1
             time.sleep(0.1)
-        run.start("buffer", child_cfg, "buffer")
-        run.start("learner", child_cfg, "learner")
-        for i, name in enumerate(actor_names):
-            acfg = Config(**child_cfg.to_dict())
-            acfg.actor_id = i
-            run.start("actor", acfg, name)
         with open_session(session_config([cfg.zenoh_listen], [], "peer", cfg.zenoh_config)) as session:
             session.declare_subscriber(keys.stats_learner, stats.on_sample)
             session.declare_subscriber(keys.stats_buffer, stats.on_sample)
+            # With --resume, one at a time: a checkpoint that cannot be read stops the run before the
+            # others start, so none of them rewrites its own checkpoint meanwhile.
+            for role in ("buffer", "learner"):
+                run.start(role, child_cfg, role)
+                if cfg.resume and (failed := _wait_started(run, role, stats)):
+                    print(f"silcr train: error: {failed}", file=sys.stderr)
+                    return 2
+            for i, name in enumerate(actor_names):
+                acfg = Config(**child_cfg.to_dict())
+                acfg.actor_id = i
+                run.start("actor", acfg, name)
             code = _watch(run, cfg, stats)
             if code == 0:
                 Shutdown(session, keys).announce("finished")
@@ -192,9 +197,33 @@ def run_train(cfg: Config) -> int:
         signal.signal(signal.SIGTERM, previous)
     if code == 0:
         print(f"silcr train: done. progress: {run_dir / 'progress.csv'}; TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
-    elif not interrupted:
+    elif code == 1:  # 2 (a component cannot start) has said its one line; 130 is Ctrl-C
         print(f"silcr train: stopped with errors; logs in {run.logs}", file=sys.stderr)
     return code
+
+
+def _cannot_start(run: LocalRun, name: str) -> str:
+    """The one line a component that could not start logged ("cannot start: ...")."""
+    lines = [line for line in _tail(run.logs / f"{name}.log", 50).splitlines() if "cannot start: " in line]
+    why = lines[-1].split("cannot start: ", 1)[1] if lines else f"see {run.logs / (name + '.log')}"
+    return f"{name} cannot start: {why}"
+
+
+def _wait_started(run: LocalRun, name: str, stats: StatsSnapshot, timeout_s: float = 300.0) -> str | None:
+    """Wait for `name`'s first stats message (it has restored its checkpoint); the reason if it could not start."""
+    deadline = time.monotonic() + timeout_s
+    while stats.as_dict()[name] is None:
+        code = run.procs[name].exitcode
+        if code == EXIT_CANNOT_START:
+            return _cannot_start(run, name)
+        if code is not None:
+            return f"{name} exited with code {code} while starting; last lines of its log:\n" \
+                   f"{_tail(run.logs / (name + '.log'))}"
+        if time.monotonic() > deadline:
+            log.warning("%s sent no stats within %.0f s; starting the others", name, timeout_s)
+            return None
+        time.sleep(0.1)
+    return None
 
 
 def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
@@ -210,9 +239,15 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
             for name, p in list(run.procs.items()):
                 if p.exitcode is None:
                     continue
-                if name != "router" and p.exitcode != 0 and run.restarts.get(name, 0) < cfg.max_restarts:
+                if p.exitcode == EXIT_CANNOT_START:  # it would fail the same way again: no restart
+                    display.stop()
+                    print(f"silcr train: error: {_cannot_start(run, name)}", file=sys.stderr)
+                    return 2
+                if p.exitcode != 0 and run.restarts.get(name, 0) < cfg.max_restarts:
                     # Actors hold no state that matters: start a fresh one (new incarnation). The
-                    # buffer and the learner come back from their latest checkpoints.
+                    # buffer and the learner come back from their latest checkpoints. The router
+                    # holds none: it comes back on the same endpoint, and every session reconnects
+                    # and declares its subscribers, queryables and tokens again by itself.
                     run.restarts[name] = run.restarts.get(name, 0) + 1
                     display.say(f"silcr train: {name} exited with code {p.exitcode}; restarting it "
                                 f"({run.restarts[name]}/{cfg.max_restarts})")

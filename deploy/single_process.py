@@ -62,9 +62,13 @@ def run_single_process(cfg: Config) -> int:
         replay, snap = open_replay(cfg, spec)
     except snapshot.SnapshotError as e:
         print(f"silcr train: error: cannot resume: {e}", file=sys.stderr)
-        return 1
+        return 2
     board = InProcessWeights()
-    learner = Learner(cfg, spec, board)
+    try:
+        learner = Learner(cfg, spec, board)
+    except CheckpointError as e:
+        print(f"silcr train: error: cannot resume: {e}", file=sys.stderr)
+        return 2
     learner.start()  # the first weights are on the board before any actor acts
     actor_cfg = cfg
     if replay.transitions_received:  # resumed actors must not replay the episodes of the first start
@@ -75,7 +79,7 @@ def run_single_process(cfg: Config) -> int:
               for i in range(cfg.actors)]
     stream = InProcessBatchStream(replay, learner.sample_request(), stop)
     checkpoints = snapshot.PeriodicCheckpoints(checkpoint_path(cfg), cfg.buffer_checkpoint_interval)
-    checkpoints.restore_parts(snap)
+    checkpoints.restore_parts(snap, replay)
     polled = [0] * len(actors)
     finished = False
     show = Every(cfg.stats_interval)

@@ -24,7 +24,7 @@ from silcr.common.clients import WeightsServer
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 
-from .checkpoint import load_checkpoint, save_checkpoint
+from .checkpoint import CheckpointError, load_checkpoint, save_checkpoint
 from .evaluate import evaluate
 from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, GASIL_COLUMNS, ProgressLog
 from .update import BufferMismatch, Update
@@ -63,7 +63,10 @@ class Bookkeeping:
         self.resumed = cfg.resume and self.checkpoint_path.exists()
         if self.resumed:
             payload = load_checkpoint(self.checkpoint_path)
-            update.restore(payload, self.checkpoint_path)
+            try:
+                update.restore(payload, self.checkpoint_path)
+            except (ValueError, KeyError, RuntimeError) as e:  # other networks, another --algo, missing tensors
+                raise CheckpointError(f"{self.checkpoint_path} does not fit this run: {e}") from None
             self.restore(payload["counters"])
             log.info("resumed from %s: %d updates, policy version %d", self.checkpoint_path, self.updates,
                      self.policy_version)

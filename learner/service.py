@@ -14,9 +14,10 @@ import time
 
 from silcr.common.clients import Shutdown, ZenohBatchStream, ZenohWeightsServer
 from silcr.common.config import Config
-from silcr.common.lifecycle import StopFlag
+from silcr.common.lifecycle import EXIT_CANNOT_START, StopFlag
 from silcr.common.role_session import role_session
 
+from .checkpoint import CheckpointError
 from .learner import Learner
 from .update import BufferMismatch
 
@@ -26,7 +27,11 @@ log = logging.getLogger("learner")
 def run_learner(cfg: Config, stop: StopFlag) -> int:
     with role_session(cfg, stop, "learner") as role:
         shutdown = Shutdown(role.session, role.keys)
-        lrn = Learner(cfg, role.spec, ZenohWeightsServer(role.session, role.keys))
+        try:
+            lrn = Learner(cfg, role.spec, ZenohWeightsServer(role.session, role.keys))
+        except CheckpointError as e:
+            log.error("cannot start: %s", e)
+            return EXIT_CANNOT_START
         log.info("learner for run %s on %s: %s, networks %s, batch %d, %d env steps",
                  cfg.run, lrn.update.device, cfg.algo, cfg.hidden, cfg.batch_size, cfg.total_steps)
         # The requests name the learner's incarnation (as its weights do): the buffer serves only a live learner.

@@ -210,6 +210,25 @@ def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
     state.ingest(restarted.encode())
     assert state.episodes_received == 2 and len(state.fifo) == 10
     assert state.rejections == {"duplicate": 1}
+    assert state.episodes_missing == 0
+
+
+def test_gaps_in_an_actors_sequence_numbers_are_counted_as_missing_episodes():
+    from silcr.buffer_service.replay import ReplayState
+    from silcr.common.config import Config
+    from silcr.common.envs import EnvSpec
+
+    cfg = Config(run="t", env="InvertedPendulum-v5")
+    state = ReplayState(cfg, EnvSpec.of("InvertedPendulum-v5"))
+    for incarnation, seqs in ((1, [0, 1, 3, 6]), (2, [4, 5])):  # a sender first seen at 4: no gap known before it
+        for seq in seqs:
+            ep = make_episode(5, ret=1.0, seq=seq)
+            ep.incarnation = incarnation
+            state.ingest(ep.encode())
+    assert state.episodes_missing == 1 + 2 and state.stats()["episodes_missing"] == 3
+    again = ReplayState(cfg, EnvSpec.of("InvertedPendulum-v5"))
+    again.restore(state.state())
+    assert again.episodes_missing == 3  # kept across a restart
 
 
 # --- contiguous storage: ring reuse, compaction, copies for holders ------------------

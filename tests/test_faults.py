@@ -7,8 +7,11 @@ from __future__ import annotations
 
 import csv
 import shutil
+import subprocess
+import sys
 
-from tests.helpers import Processes, wait_for
+from silcr.cli import command
+from tests.helpers import REPO, Processes, free_port, wait_for
 
 SMALL = ["--env", "InvertedPendulum-v5", "--hidden", "32", "32", "--learning-starts", "300", "--batch-size", "32",
          "--eval-interval", "1000", "--eval-episodes", "1"]
@@ -37,3 +40,46 @@ def test_a_learner_checkpoint_that_cannot_be_written_is_counted_and_training_goe
     assert "the final checkpoint could not be written" in log
     assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["buffer.ckpt", "learner.pt"]  # no temp file
     shutil.rmtree(learner_pt)
+
+
+def _evil_pickle(path, marker) -> None:
+    code = (f"import os, torch\nclass Evil:\n    def __reduce__(self):\n        return (os.system, ('touch {marker}',))\n"
+            f"torch.save({{'sac': Evil(), 'counters': {{}}, 'config': {{}}}}, {str(path)!r})\n")
+    subprocess.run([sys.executable, "-c", code], check=True, timeout=60)
+
+
+def test_a_component_that_cannot_start_is_not_restarted_and_nothing_is_rewritten(tmp_path):
+    """A corrupt checkpoint under --resume: one line, exit 2, no restarts, and the other component's
+    checkpoint is left byte for byte. Before: the launcher restarted the component five times, exited 1
+    with a traceback, and the healthy components rewrote their checkpoints meanwhile."""
+    runs = tmp_path / "runs"
+    args = ["train", "--run", "bad", "--runs-dir", str(runs), *SMALL, "--actors", "1", "--total-steps", "1500",
+            "--checkpoint-interval", "300"]
+    first = subprocess.run(command(*args, "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"), capture_output=True,
+                           text=True, timeout=600, cwd=REPO)
+    assert first.returncode == 0, first.stderr
+    ckpt = runs / "bad" / "checkpoints"
+    good = {p.name: p.read_bytes() for p in ckpt.iterdir()}
+    assert set(good) == {"learner.pt", "buffer.ckpt"}
+    marker = tmp_path / "ran"
+    cases = {  # the file to spoil, how, and what the one line names
+        "truncated buffer": ("buffer.ckpt", lambda p: p.write_bytes(good["buffer.ckpt"][:1000]), "buffer cannot start"),
+        "zeroed learner": ("learner.pt", lambda p: p.write_bytes(bytes(len(good["learner.pt"]))), "learner cannot start"),
+        "a pickle that runs code": ("learner.pt", lambda p: _evil_pickle(p, marker), "could run code"),
+    }
+    for case, (name, spoil, needle) in cases.items():
+        for n, data in good.items():
+            (ckpt / n).write_bytes(data)
+        spoil(ckpt / name)
+        spoiled = (ckpt / name).read_bytes()
+        r = subprocess.run(command(*args, "--resume", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"),
+                           capture_output=True, text=True, timeout=300, cwd=REPO)
+        assert r.returncode == 2, f"{case}: {r.returncode} {r.stderr}"
+        errors = [line for line in r.stderr.splitlines() if "error" in line]
+        assert len(errors) == 1 and needle in errors[0] and "Traceback" not in r.stderr, f"{case}: {r.stderr}"
+        assert "restarting" not in r.stdout + r.stderr, case
+        other = next(n for n in good if n != name)
+        assert (ckpt / other).read_bytes() == good[other], f"{case}: {other} was rewritten"
+        assert (ckpt / name).read_bytes() == spoiled, case
+        assert sorted(p.name for p in ckpt.iterdir()) == sorted(good)  # no temporary file
+    assert not marker.exists()  # the pickle's code never ran

@@ -17,6 +17,7 @@ import threading
 
 import msgpack
 import numpy as np
+import zenoh
 
 from silcr.common import protocol as P
 from tests.conftest import make_episode
@@ -153,3 +154,42 @@ def test_a_strangers_sampling_spends_none_of_the_learners_budget(tmp_path):
     # env steps for 5,500 updates when measured). With the stranger served, the learner made its 5,500
     # updates only after 274,469 env steps: the actors ran on while the stranger took the batches.
     assert steps >= total and updates >= total - starts and updates >= 0.75 * (steps - starts), last
+
+
+def _rss_mb(pid: int) -> float:
+    for line in open(f"/proc/{pid}/status"):
+        if line.startswith("VmRSS:"):
+            return int(line.split()[1]) / 1024
+    raise AssertionError(f"no VmRSS for {pid}")
+
+
+def test_the_buffers_memory_comes_back_after_oversized_messages(tmp_path):
+    """A 240 MB episode is rejected as oversized; the buffer's resident memory used to stay about 230 MB
+    higher afterwards. Now its size is read before the payload is copied out of Zenoh."""
+    procs = Processes(tmp_path)
+    port = free_port()
+    run = "oversized"
+    keys = P.Keys(run)
+    ep = f"tcp/127.0.0.1:{port}"
+    procs.start("router", "router", "--listen", ep)
+    buffer = procs.start("buffer", "buffer", "--run", run, "--env", "InvertedPendulum-v5", "--connect", ep,
+                         "--stats-interval", "0.2")
+    try:
+        session = client_when_up(port)
+        stats = LatestJson(session, keys.stats_all)
+        wait_for(lambda: stats.get(keys.stats_buffer), 60, "buffer stats")
+        episodes = session.declare_publisher(keys.episodes, congestion_control=zenoh.CongestionControl.BLOCK)
+        wait_for(lambda: episodes.matching_status.matching, 20, "the buffer")
+        before = _rss_mb(buffer.pid)
+        big = b"\x00" * (240 * 2**20)
+        for _ in range(3):
+            episodes.put(big)
+        del big
+        wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("rejections", {}).get("oversized", 0) >= 3, 120,
+                 "three oversized rejections")
+        after = _rss_mb(buffer.pid)
+        session.close()
+    finally:
+        procs.stop_all()
+    print(f"buffer RSS {before:.0f} MB before, {after:.0f} MB after three 240 MB messages")
+    assert after < before + 120, (before, after)
