@@ -98,7 +98,7 @@ class Config:
     checkpoint_interval: int = _opt(10_000, {"train", "learner"}, "checkpoint every N updates (and at the end)")
     resume: bool = _opt(False, SERVICE, "continue from the checkpoints in <run dir>/checkpoints/ when they exist (learner: networks, optimizers, alpha, counters; buffer: D_O, D_E, counters)")
     device: str = _opt("auto", {"train", "learner"}, "torch device for the learner (auto: CUDA when present)", choices=DEVICES)
-    torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: torch's default)")
+    torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: the faster of 1 and all cores, timed at start)")
     batches_per_request: int = _opt(4, {"train", "learner"}, "batches fetched per sample query")
     requests_in_flight: int = _opt(2, {"train", "learner"}, "sample queries kept in flight so the learner never waits on the network")
     # --- GASIL (learner.gasil; sources in docs/algorithm.md, "GASIL") -------------

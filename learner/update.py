@@ -10,6 +10,7 @@ itself (`state`, `restore`): the checkpoint's "sac" and "gasil" sections.
 
 from __future__ import annotations
 
+import logging
 import warnings
 from typing import Any
 
@@ -23,6 +24,9 @@ from silcr.common.envs import EnvSpec
 
 from .gasil import Gasil, GasilHyper
 from .sac import Sac, SacHyper, as_floats
+from .threads import choose_threads, usable_cores
+
+log = logging.getLogger("learner")
 
 
 def pick_device(name: str) -> torch.device:
@@ -56,11 +60,10 @@ class Update:
     def __init__(self, cfg: Config, spec: EnvSpec) -> None:
         self.cfg = cfg
         self.device = pick_device(cfg.device)
-        if cfg.torch_threads:
-            torch.set_num_threads(cfg.torch_threads)
-        torch.manual_seed(cfg.seed)
         hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
                       cfg.tanh_log_prob)
+        self.torch_threads = self._set_threads(spec, hp)
+        torch.manual_seed(cfg.seed)  # after the thread probe, so that it changes nothing the run draws
         self.sac = Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
         self.gasil: Gasil | None = None
         if algorithm(cfg.algo).discriminator:
@@ -69,6 +72,24 @@ class Update:
             self.gasil = Gasil(spec.obs_dim, spec.act_dim, ghp, self.device)
         self._last: dict[str, torch.Tensor] = {}
         self._disc_last: dict[str, torch.Tensor] = {}
+
+    def _set_threads(self, spec: EnvSpec, hp: SacHyper) -> int:
+        """`--torch-threads`, or on a CPU with several cores the faster of 1 and all, timed (`threads.py`)."""
+        cores = usable_cores()
+        if self.cfg.torch_threads or self.device.type != "cpu" or cores <= 1:
+            torch.set_num_threads(self.cfg.torch_threads or torch.get_num_threads())
+            return torch.get_num_threads()
+        probe = Sac(spec.obs_dim, spec.act_dim, self.cfg.hidden, hp, self.device)  # a throwaway copy
+        g = torch.Generator().manual_seed(0)
+        n = self.cfg.batch_size
+        batch = (torch.randn(n, spec.obs_dim, generator=g), torch.rand(n, spec.act_dim, generator=g) * 2 - 1,
+                 torch.randint(0, 2, (n,), generator=g).float(), torch.randn(n, spec.obs_dim, generator=g),
+                 torch.zeros(n), torch.zeros(n))
+        best, times = choose_threads(lambda: probe.update(*batch), cores)
+        torch.set_num_threads(best)
+        log.info("torch threads: %d (timed the update: %s; --torch-threads N sets it)", best,
+                 ", ".join(f"{k} thread{'s' if k > 1 else ''} {1000 * t:.2f} ms" for k, t in times.items()))
+        return best
 
     def sample_request(self) -> P.SampleRequest:
         """What to ask the buffer for: a discriminator also wants its rows."""
