@@ -9,6 +9,7 @@ own test task, `silcr/PointGoal-v0` (common/point_goal.py), pays only at the end
 
 from __future__ import annotations
 
+import logging
 from dataclasses import dataclass
 from typing import Any, SupportsFloat
 
@@ -48,8 +49,32 @@ class EpisodicReward(gym.Wrapper, gym.utils.RecordConstructorArgs):
         return obs, out, terminated, truncated, info
 
 
+_MUJOCO_WARNINGS_SEEN: set[str] = set()
+
+
+def _route_mujoco_warnings() -> None:
+    """MuJoCo's warnings to this process's log, once per message, instead of its default, which
+    also writes MUJOCO_LOG.TXT into the working directory (HalfCheetah's XML warns of a
+    deprecated attribute each time it loads, so every command that made it left that file
+    behind). A handler the caller installed stays."""
+    try:
+        import mujoco
+    except ImportError:
+        return
+    if mujoco.get_mju_user_warning() is not None:
+        return
+
+    def warn(message: str) -> None:
+        if message not in _MUJOCO_WARNINGS_SEEN:
+            _MUJOCO_WARNINGS_SEEN.add(message)
+            logging.getLogger("mujoco").warning("%s", message)
+
+    mujoco.set_mju_user_warning(warn)
+
+
 def make_env(env_id: str, reward: str = "dense", **kwargs: Any) -> gym.Env:
     """Make `env_id` with dense or episodic reward; raise ValueError with a clear message on a bad id."""
+    _route_mujoco_warnings()
     if reward not in REWARD_MODES:
         raise ValueError(f"reward must be one of {REWARD_MODES}, got {reward!r}")
     if env_id in EPISODIC_IDS:
