@@ -1,12 +1,16 @@
-"""`silcr bench [learner|buffer|actor|e2e|all]`: run benchmarks, print tables, write JSON."""
+"""`silcr bench [learner|buffer|actor|e2e|scale|all]`: run benchmarks, print tables, write JSON."""
 
 from __future__ import annotations
 
 from pathlib import Path
 
 
-def run_bench(which: str, out_dir: Path, device: str, quick: bool) -> int:
-    from . import actor, buffer, e2e, learner
+def run_bench(which: str, out_dir: Path, device: str, quick: bool, counts: list[int] | None = None,
+              envs_per_actor: int = 1, seconds: float = 0.0) -> int:
+    from . import actor, buffer, e2e, learner, scale
+
+    if which == "scale":
+        scale.run(out_dir, quick, counts or None, envs_per_actor, seconds=seconds or None)
 
     if which in ("learner", "all"):
         learner.run(out_dir, "cpu", quick)

@@ -74,7 +74,7 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
                 role.stats.put(replay.stats() | {
                     "actors_alive": len(actors), "actors_paused": paused, "inbox_episodes": waiting_episodes,
                     "inbox_queries": waiting_queries, "inbox_blocked_puts": inbox.blocked_puts,
-                    "episodes_dropped": inbox.dropped_at_close,
+                    "episodes_dropped": inbox.dropped_at_close, "episode_bytes_received": server.episode_bytes_received,
                 } | checkpoints.stats() | restored)
         server.close()
     checkpoints.final(replay)

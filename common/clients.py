@@ -304,6 +304,7 @@ class ZenohReplayServer:
                  max_episode_bytes: int = P.DEFAULT_MAX_EPISODE_BYTES) -> None:
         self.inbox = inbox
         self.max_episode_bytes = max_episode_bytes
+        self.episode_bytes_received = 0  # every episode message's size, oversized ones included
         session.declare_subscriber(keys.episodes, self._on_episode)
         session.declare_queryable(keys.sample, lambda q: inbox.put_request(SampleQuery(q, keys.sample)))
 
@@ -311,6 +312,7 @@ class ZenohReplayServer:
         # The size first, from Zenoh's buffer: an oversized message is never copied into Python
         # (three of 240 MB left the buffer 500 MB larger), only its rejection is queued.
         size = len(sample.payload)
+        self.episode_bytes_received += size
         if size > self.max_episode_bytes:
             self.inbox.put_data(P.ProtocolError("oversized", f"message of {size} bytes exceeds the limit of "
                                                              f"{self.max_episode_bytes}"))
@@ -423,7 +425,8 @@ class WeightsClient(Generic[PolicyT]):
     def stats(self) -> dict:
         return {"policy_version": self.version, "weights_rejected": self.rejected,
                 "weights_rejections": dict(self.rejections),
-                "weights_latency_ms_p50": float(np.median(self.latency_ms)) if self.latency_ms else None}
+                "weights_latency_ms_p50": float(np.median(self.latency_ms)) if self.latency_ms else None,
+                "weights_latency_ms_p99": float(np.percentile(self.latency_ms, 99)) if self.latency_ms else None}
 
 
 class ZenohWeightsClient(WeightsClient[PolicyT]):
@@ -476,6 +479,9 @@ class WeightsServer:
     def publish(self, weights: P.Weights) -> None:
         raise NotImplementedError
 
+    def stats(self) -> dict:
+        return {}
+
 
 class ZenohWeightsServer(WeightsServer):
     """Publishes with BLOCK congestion control and high priority, and answers queries for the latest
@@ -485,6 +491,7 @@ class ZenohWeightsServer(WeightsServer):
         self._key = keys.weights
         self._latest = b""
         self._lock = threading.Lock()
+        self.published = 0
         self._pub = session.declare_publisher(keys.weights, congestion_control=zenoh.CongestionControl.BLOCK,
                                               priority=zenoh.Priority.DATA_HIGH)
         session.declare_queryable(keys.weights, self._answer)
@@ -501,6 +508,11 @@ class ZenohWeightsServer(WeightsServer):
         with self._lock:
             self._latest = payload
         self._pub.put(payload)
+        self.published += 1
+
+    def stats(self) -> dict:
+        """What goes out: the router sends each publication to every actor (`weights_bytes` x actors)."""
+        return {"weights_published": self.published, "weights_bytes": len(self._latest)}
 
 
 class InProcessWeights(WeightsServer):

@@ -234,6 +234,7 @@ class Bookkeeping:
             "expert_age_mean": float(np.mean(self.expert_age)) if self.expert_age else None,
             "device": str(self.update.device),
             "torch_threads": self.update.torch_threads,
+            **self.weights_server.stats(),
         } | {k: P.finite_or_none(v) for k, v in losses.items()} | {"q_bound_exceeded": losses["q_bound_exceeded"]}
 
     def record_scalars(self, stats: dict[str, Any]) -> None:

@@ -91,7 +91,13 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--port-base", type=int, default=17500, help="first router port; cell i uses port-base + i (default: 17500)")
             continue
         if role == "bench":
-            p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "all"])
+            p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "scale", "all"],
+                           help="which benchmark; `all` runs every one but scale (which starts up to 128 actors)")
+            p.add_argument("--counts", default="", help="scale: actor counts, comma-separated (default: 8,32,128; "
+                                                        "--quick: 2,4)")
+            p.add_argument("--envs-per-actor", type=int, default=1, help="scale: envs in each actor process (default: 1)")
+            p.add_argument("--seconds", type=float, default=0.0, help="scale: the measurement window per count "
+                                                                       "(default: 60; --quick: 10)")
             p.add_argument("--out", default="bench-results", help="directory for the JSON results (default: bench-results)")
             p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="learner benchmark device (default: auto: CPU, and CUDA when present)")
             p.add_argument("--quick", action="store_true", help="short measurements (a smoke test of the suite)")
@@ -210,7 +216,14 @@ def main(argv: list[str] | None = None) -> int:
 
         from silcr.bench.cli import run_bench
 
-        return run_bench(args.which, Path(args.out), args.device, args.quick)
+        try:
+            counts = [int(c) for c in args.counts.split(",") if c.strip()]
+        except ValueError:
+            subs[role].error(f"--counts: {args.counts!r} is not a comma-separated list of actor counts")
+        if any(c < 1 for c in counts) or args.envs_per_actor < 1 or args.seconds < 0:
+            subs[role].error("--counts, --envs-per-actor and --seconds must be positive")
+        return run_bench(args.which, Path(args.out), args.device, args.quick, counts, args.envs_per_actor,
+                         args.seconds)
     if role == "router":
         from silcr.common.zenoh_session import check_endpoint
 

@@ -87,3 +87,31 @@ def test_recorded_matmuls_are_the_counted_flops():
         flops += 2 * a[-2] * a[-1] * b[-1] * (a[0] if len(a) == 3 else 1)
     assert flops == update_flops(5, 2, [16, 8], 32)
     assert matmul_only_rate(calls, torch.device("cpu"), 0.05) > 0
+
+
+def test_the_scale_bench_measures_a_real_run_and_loses_nothing(tmp_path):
+    """`silcr bench scale --quick` at 2 actors: every quantity issue 20 asks for is measured, and no
+    episode is lost (no gap in any actor's sequence numbers, none left in the inbox)."""
+    import json
+    import subprocess
+    import sys
+
+    from tests.helpers import REPO
+
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "bench", "scale", "--quick", "--counts", "2",
+                        "--seconds", "5", "--out", str(tmp_path)], capture_output=True, text=True, cwd=REPO,
+                       timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    (res,) = json.loads((tmp_path / "scale.json").read_text())["results"]
+    assert res["actors"] == 2 and res["actors_reporting"] == 2
+    assert res["episodes_missing"] == 0 and res["episodes_dropped"] == 0 and res["episodes_rejected"] == 0
+    assert res["episodes_received"] > 0 and res["episodes_received"] >= 0.8 * res["episodes_published"]
+    for key in ("weights_latency_ms_p50", "weights_latency_ms_p99", "weights_fanout_mb_per_s", "episodes_mb_per_s",
+                "router_cpu_cores", "buffer_cpu_cores", "learner_cpu_cores", "actor_rss_mb_median",
+                "learner_duty_cycle"):
+        assert isinstance(res[key], float) and res[key] >= 0, key
+    assert 20 < res["actor_rss_mb_median"] < 1000 and res["weights_bytes"] > 1000
+    assert (tmp_path / "scale.png").stat().st_size > 1000
+    bad = subprocess.run([sys.executable, "-m", "silcr.cli", "bench", "scale", "--counts", "8,x"],
+                         capture_output=True, text=True, cwd=REPO, timeout=60)
+    assert bad.returncode == 2 and "--counts" in bad.stderr and "Traceback" not in bad.stderr
