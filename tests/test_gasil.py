@@ -11,6 +11,7 @@ from silcr.common import protocol as P
 from silcr.common.clients import InProcessWeights
 from silcr.common.config import GASIL_REWARD_FORMS, Config
 from silcr.common.envs import EnvSpec
+from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.gasil import Gasil, GasilHyper, reward_from_logit
 from silcr.learner.learner import Learner
 from tests.conftest import make_episode
@@ -207,7 +208,7 @@ def test_a_resumed_gasil_learner_continues_bit_identically(tmp_path):
 def test_a_checkpoint_without_a_discriminator_is_refused(tmp_path):
     sac_cfg = Config(**_gasil_cfg(tmp_path).to_dict() | {"algo": "sac"})
     Learner(sac_cfg, EnvSpec.of(ENV), InProcessWeights()).checkpoint()
-    with pytest.raises(ValueError, match="no GASIL discriminator"):
+    with pytest.raises(CheckpointError, match="does not fit this run: .*no GASIL discriminator"):
         Learner(Config(**_gasil_cfg(tmp_path).to_dict() | {"resume": True}), EnvSpec.of(ENV), InProcessWeights())
 
 
