@@ -11,6 +11,7 @@ A bad option or config file prints one line naming it and exits with code 2.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 
 from silcr.common.algorithms import algorithm
@@ -190,6 +191,16 @@ def command(*args: str) -> list[str]:
 
 
 def main(argv: list[str] | None = None) -> int:
+    try:
+        return _main(argv)
+    except BrokenPipeError:
+        # `silcr sweep ... --dry-run | head` closed the pipe: stop quietly, as other command-line
+        # tools do, and keep Python from failing again when it flushes stdout at exit.
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())
+        return 141  # 128 + SIGPIPE, what a shell reports for a tool the pipe ended
+
+
+def _main(argv: list[str] | None) -> int:
     parser, subs = build_parser()
     args = parser.parse_args(argv)
     role = args.command

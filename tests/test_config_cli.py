@@ -144,3 +144,10 @@ def test_thread_pool_defaults_apply_to_library_use(module):
     code = f"import {module}, os; print(os.environ.get('OMP_WAIT_POLICY'), os.environ.get('OPENBLAS_NUM_THREADS'))"
     out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True).stdout.split()
     assert out == ["PASSIVE", "1"]
+
+
+def test_output_cut_short_by_a_pipe_ends_quietly():
+    """`silcr sweep ... --dry-run | head -1`: a closed pipe printed a BrokenPipeError traceback."""
+    r = subprocess.run(f"{sys.executable} -m silcr.cli sweep experiments/paper.toml --seeds 0-999 --dry-run | head -1",
+                       shell=True, capture_output=True, text=True, timeout=120, cwd=REPO)
+    assert r.stdout.startswith("silcr sweep paper: 30000 cells") and r.stderr == "", r.stderr
