@@ -71,7 +71,7 @@ def _cpu_of(pids: dict[str, int]) -> dict[str, float | None]:
 
 
 def measure(actors: int, seconds: float, env_id: str, envs_per_actor: int, hidden: list[int],
-            weights_interval: int) -> dict[str, Any]:
+            weights_interval: int, first_update_s: float = 300.0) -> dict[str, Any]:
     """One `silcr train` with `actors` actors, measured for `seconds` after its first update."""
     run_name = f"bench-scale-{actors}-{int(time.time())}"
     keys = P.Keys(run_name)
@@ -101,7 +101,16 @@ def measure(actors: int, seconds: float, env_id: str, envs_per_actor: int, hidde
         with comp.session() as s:
             stats = StatsSnapshot(keys)
             s.declare_subscriber(keys.stats_all, stats.on_sample)
-            wait_until(lambda: stats.get(keys.stats_learner).get("updates", 0) > 0, 600, "the first update")
+            try:
+                wait_until(lambda: stats.get(keys.stats_learner).get("updates", 0) > 0, first_update_s,
+                           "the first update")
+            except TimeoutError:
+                # Measured at 128 actors on 2 cores without throttling: after 8 minutes the
+                # actors had collected 30,000 steps and the learner had not yet logged its start.
+                buffer = stats.get(keys.stats_buffer)
+                return result | {"starved": f"no update within {first_update_s:.0f} s",
+                                 "episodes_received": buffer.get("episodes_received"),
+                                 "transitions_received": buffer.get("transitions_received")}
             pids = json.loads((runs_dir / run_name / "pids.json").read_text())
             first = _snapshot(stats, keys), _cpu_of(pids), time.monotonic()
             time.sleep(seconds)
@@ -178,11 +187,12 @@ def run(out_dir: Path, quick: bool = False, counts: list[int] | None = None, env
     for n in counts:
         print(f"silcr bench scale: {n} actors x {envs_per_actor} env(s), {seconds:.0f} s window ...", flush=True)
         results.append(measure(n, seconds, env_id, envs_per_actor, hidden, weights_interval=50))
-    keys = [k for k in results[-1] if k not in ("actors", "envs_per_actor")]
+        # after every count, so that a later count that runs long or is stopped loses nothing
+        write_json(out_dir, "scale", {"env": env_id, "hidden": hidden, "window_s": seconds, "results": results})
+    keys = list(dict.fromkeys(k for r in results for k in r if k not in ("actors", "envs_per_actor")))
     print_table(f"scale: silcr train on {env_id}, networks {hidden}, window {seconds:.0f} s",
                 ["metric", *[f"{r['actors']} actors" for r in results]],
                 [[k, *[_fmt(r.get(k)) for r in results]] for k in keys])
-    write_json(out_dir, "scale", {"env": env_id, "hidden": hidden, "window_s": seconds, "results": results})
     _figure(out_dir, results)
     return results
 

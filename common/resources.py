@@ -12,12 +12,12 @@ import ctypes.util
 import os
 
 #: `silcr train` starts one process per actor. Each holds a Zenoh session and its envs and
-#: is about 85 MB resident (docs/reliability.md, the soak test); 1,024 of them need about
-#: 87 GB and more processes than a default `ulimit -u` on many hosts. More envs per process
+#: is 85-95 MB resident (the soak test; `silcr bench scale` at 800-400 networks: 92-95 MB);
+#: 1,024 of them need about 100 GB and more processes than a default `ulimit -u` on many hosts. More envs per process
 #: (`--envs-per-actor`) or actors started on other machines (`silcr actor`) scale further.
 MAX_LOCAL_ACTORS = 1024
-#: resident memory of one actor process, rounded up from the soak test's 84.8 MB
-ACTOR_RSS_BYTES = 90 * 2**20
+#: resident memory of one actor process, rounded up from the 95 MB `silcr bench scale` measured
+ACTOR_RSS_BYTES = 100 * 2**20
 
 
 def available_memory() -> int | None:
