@@ -156,7 +156,6 @@ def run_train(cfg: Config) -> int:
     keys = P.Keys(cfg.run)
     stats = StatsSnapshot(keys)
     code = 0
-    interrupted = False
     previous = signal.getsignal(signal.SIGTERM)
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     try:
@@ -187,7 +186,6 @@ def run_train(cfg: Config) -> int:
             if code == 0:
                 Shutdown(session, keys).announce("finished")
     except KeyboardInterrupt:
-        interrupted = True
         print("\nsilcr train: interrupted; stopping all components (Ctrl-C again to force)", file=sys.stderr)
         code = 130
     finally:
@@ -216,9 +214,8 @@ def _wait_started(run: LocalRun, name: str, stats: StatsSnapshot, timeout_s: flo
         code = run.procs[name].exitcode
         if code == EXIT_CANNOT_START:
             return _cannot_start(run, name)
-        if code is not None:
-            return f"{name} exited with code {code} while starting; last lines of its log:\n" \
-                   f"{_tail(run.logs / (name + '.log'))}"
+        if code is not None:  # died some other way: `_watch` restarts it as it would any time
+            return None
         if time.monotonic() > deadline:
             log.warning("%s sent no stats within %.0f s; starting the others", name, timeout_s)
             return None

@@ -42,6 +42,7 @@ from silcr.common.envs import EnvSpec
 from silcr.common.lifecycle import StopFlag
 from silcr.common.schedule import Every
 from silcr.deploy.console import TrainingDisplay
+from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.learner import Learner
 
 log = logging.getLogger("train")

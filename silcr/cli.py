@@ -13,9 +13,13 @@ from __future__ import annotations
 import argparse
 import os
 import sys
+from typing import TYPE_CHECKING
 
 from silcr.common.algorithms import algorithm
 from silcr.common.config import ConfigError, Config, add_options, resolve
+
+if TYPE_CHECKING:
+    from silcr.common.envs import EnvSpec
 
 ROLES_HELP = {
     "train": "run router, buffer service, learner and actors locally until the step budget is spent",

@@ -83,3 +83,19 @@ def test_a_component_that_cannot_start_is_not_restarted_and_nothing_is_rewritten
         assert (ckpt / name).read_bytes() == spoiled, case
         assert sorted(p.name for p in ckpt.iterdir()) == sorted(good)  # no temporary file
     assert not marker.exists()  # the pickle's code never ran
+
+
+def test_a_single_process_run_refuses_a_corrupt_learner_checkpoint_with_one_line(tmp_path):
+    runs = tmp_path / "runs"
+    args = ["train", "--single-process", "--run", "one", "--runs-dir", str(runs), *SMALL, "--total-steps", "800",
+            "--checkpoint-interval", "200"]
+    first = subprocess.run(command(*args), capture_output=True, text=True, timeout=600, cwd=REPO)
+    assert first.returncode == 0, first.stderr
+    learner_pt = runs / "one" / "checkpoints" / "learner.pt"
+    learner_pt.write_bytes(bytes(learner_pt.stat().st_size))
+    buffer_ckpt = (runs / "one" / "checkpoints" / "buffer.ckpt").read_bytes()
+    r = subprocess.run(command(*args, "--resume"), capture_output=True, text=True, timeout=300, cwd=REPO)
+    errors = [line for line in r.stderr.splitlines() if "error" in line]
+    assert r.returncode == 2 and len(errors) == 1 and "cannot resume" in errors[0], r.stderr
+    assert "Traceback" not in r.stderr
+    assert (runs / "one" / "checkpoints" / "buffer.ckpt").read_bytes() == buffer_ckpt
