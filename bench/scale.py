@@ -56,7 +56,8 @@ def _cpu_seconds(pid: int) -> float | None:
         return None
 
 
-def _rss_mb(pid: int) -> float | None:
+def rss_mb(pid: int) -> float | None:
+    """A process's resident memory in MB (VmRSS), or None once it is gone."""
     try:
         for line in Path(f"/proc/{pid}/status").read_text().splitlines():
             if line.startswith("VmRSS:"):
@@ -116,7 +117,7 @@ def measure(actors: int, seconds: float, env_id: str, envs_per_actor: int, hidde
             time.sleep(seconds)
             pids = json.loads((runs_dir / run_name / "pids.json").read_text())  # a restart would change them
             last = _snapshot(stats, keys), _cpu_of(pids), time.monotonic()
-            rss = [r for name, pid in pids.items() if name.startswith("actor-") and (r := _rss_mb(pid)) is not None]
+            rss = [r for name, pid in pids.items() if name.startswith("actor-") and (r := rss_mb(pid)) is not None]
     finally:
         if proc.poll() is None:
             proc.send_signal(signal.SIGINT)  # the Ctrl-C path: every component stops and checkpoints

@@ -33,6 +33,14 @@ def _try_lock(fd: int) -> bool:
         raise
 
 
+def _lock_or_refuse(fd: int, run_dir: Path) -> None:
+    """Take the lock on `fd`, or raise `RunInUse` naming the process that holds it (the pid it wrote)."""
+    if not _try_lock(fd):
+        holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
+        raise RunInUse(f"run directory {run_dir} is in use by a live run (process {holder}); wait for it to "
+                       f"finish, stop it, or pick another --run")
+
+
 def check_free(run_dir: Path) -> None:
     """Raise `RunInUse` if a live process holds `run_dir`'s lock. Writes nothing."""
     path = run_dir / LOCK_NAME
@@ -41,10 +49,7 @@ def check_free(run_dir: Path) -> None:
     except FileNotFoundError:
         return
     try:
-        if not _try_lock(fd):
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
-            raise RunInUse(f"run directory {run_dir} is in use by a live run (process {holder}); wait for it to "
-                           f"finish, stop it, or pick another --run")
+        _lock_or_refuse(fd, run_dir)
     finally:
         os.close(fd)  # closing drops a lock taken by the probe
 
@@ -56,9 +61,7 @@ def hold(run_dir: Path) -> Iterator[None]:
     run_dir.mkdir(parents=True, exist_ok=True)
     fd = os.open(run_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
     try:
-        if not _try_lock(fd):  # another launcher took it between the check and now
-            holder = os.pread(fd, 64, 0).decode(errors="replace").strip() or "?"
-            raise RunInUse(f"run directory {run_dir} is in use by a live run (process {holder}); pick another --run")
+        _lock_or_refuse(fd, run_dir)  # another launcher may have taken it between the check and now
         os.ftruncate(fd, 0)
         os.pwrite(fd, str(os.getpid()).encode(), 0)  # for the message a second launcher prints
         yield

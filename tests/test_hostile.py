@@ -19,6 +19,7 @@ import msgpack
 import numpy as np
 import zenoh
 
+from silcr.bench.scale import rss_mb
 from silcr.common import protocol as P
 from tests.conftest import make_episode
 from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
@@ -156,13 +157,6 @@ def test_a_strangers_sampling_spends_none_of_the_learners_budget(tmp_path):
     assert steps >= total and updates >= total - starts and updates >= 0.75 * (steps - starts), last
 
 
-def _rss_mb(pid: int) -> float:
-    for line in open(f"/proc/{pid}/status"):
-        if line.startswith("VmRSS:"):
-            return int(line.split()[1]) / 1024
-    raise AssertionError(f"no VmRSS for {pid}")
-
-
 def test_the_buffers_memory_comes_back_after_oversized_messages(tmp_path):
     """A 240 MB episode is rejected as oversized; the buffer's resident memory used to stay about 230 MB
     higher afterwards. Now its size is read before the payload is copied out of Zenoh."""
@@ -180,14 +174,14 @@ def test_the_buffers_memory_comes_back_after_oversized_messages(tmp_path):
         wait_for(lambda: stats.get(keys.stats_buffer), 60, "buffer stats")
         episodes = session.declare_publisher(keys.episodes, congestion_control=zenoh.CongestionControl.BLOCK)
         wait_for(lambda: episodes.matching_status.matching, 20, "the buffer")
-        before = _rss_mb(buffer.pid)
+        before = rss_mb(buffer.pid)
         big = b"\x00" * (240 * 2**20)
         for _ in range(3):
             episodes.put(big)
         del big
         wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("rejections", {}).get("oversized", 0) >= 3, 120,
                  "three oversized rejections")
-        after = _rss_mb(buffer.pid)
+        after = rss_mb(buffer.pid)
         session.close()
     finally:
         procs.stop_all()
