@@ -23,7 +23,7 @@ from silcr.common.envs import EnvSpec, make_env
 from silcr.common.lifecycle import StopFlag
 from silcr.common.role_session import role_session
 
-from .policy import NumpyPolicy, initial_weights
+from .policy import Policy, initial_weights, policy_for
 
 log = logging.getLogger("actor")
 
@@ -40,19 +40,19 @@ class _Rollout:
 
 def policy_factory(spec: EnvSpec):
     """Weights -> the actors' NumPy policy for `spec` (raises ProtocolError for weights that do not fit)."""
-    return lambda w: NumpyPolicy(w, spec.obs_dim, spec.act_dim)
+    return lambda w: policy_for(w, spec)
 
 
 def random_initial_weights(cfg: Config, spec: EnvSpec, seed: int):
     """The untrained policy an actor acts with until the learner's weights arrive."""
-    return lambda: initial_weights(spec.obs_dim, spec.act_dim, cfg.hidden, seed)
+    return lambda: initial_weights(spec.obs_dim, spec.act_dim, cfg.hidden, seed, spec.n_actions)
 
 
 class Actor:
     """`envs_per_actor` envs stepped together with one batched forward pass of the current policy."""
 
     def __init__(self, cfg: Config, spec: EnvSpec, actor_id: int, writer: EpisodeWriter,
-                 weights: WeightsClient[NumpyPolicy]) -> None:
+                 weights: WeightsClient[Policy]) -> None:
         self.actor_id = actor_id
         self.seed = seeds.actor(cfg.seed, actor_id)
         self.spec = spec

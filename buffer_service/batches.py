@@ -23,13 +23,14 @@ def online_rows(batch_size: int, mixed: bool) -> int:
 
 
 def compose_batches(fifo: OnlineFifo, heap: ExpertHeap | None, batches: int, batch_size: int, rng: np.random.Generator,
-                    labeller: Labeller, obs_dim: int, act_dim: int) -> Batch[np.ndarray]:
+                    labeller: Labeller, obs_dim: int, act_dim: int,
+                    action_dtype: type = np.float32) -> Batch[np.ndarray]:
     """`batches` consecutive batches of `batch_size` rows; with `heap`, half of each from it (see above).
 
     With `heap=None` every row comes from `fifo`.
     """
     n = batches * batch_size
-    out = Batch.empty(n, obs_dim, act_dim)
+    out = Batch.empty(n, obs_dim, act_dim, action_dtype)
     n_online = online_rows(batch_size, heap is not None)
     copy_rewards = labeller.copies_env_rewards
     if n_online == batch_size:

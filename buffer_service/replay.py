@@ -39,10 +39,11 @@ log = logging.getLogger("buffer")
 def reserved_bytes(cfg: Config, spec: EnvSpec) -> int:
     """The bytes D_O's and D_E's row storage reserves for `cfg`'s capacities and `spec`'s shapes.
 
-    Mirrors `OnlineFifo` and `ExpertHeap`: observation, action and reward rows of float32,
-    with their slack for whole episodes. Checked against the machine's memory before a run starts.
+    Mirrors `OnlineFifo` and `ExpertHeap`: observation and reward rows of float32, action rows
+    (float32, or int64 indices), with their slack for whole episodes. Checked against the
+    machine's memory before a run starts.
     """
-    row = 4 * (spec.obs_dim + spec.act_dim + 1)
+    row = 4 * (spec.obs_dim + 1) + spec.action_bytes
     longest = min(spec.max_episode_steps or cfg.online_capacity, cfg.online_capacity)
     rows = cfg.online_capacity + cfg.online_capacity // 32 + 2 * (longest + 1)
     if algorithm(cfg.algo).ranks_own_episodes:
@@ -73,7 +74,7 @@ class ReplayState:
         self.limiter = SamplesPerInsertLimiter(
             cfg.samples_per_insert, cfg.learning_starts, cfg.spi_tolerance, throttle_inserts=not cfg.no_throttle
         )
-        self.limits = P.EpisodeLimits(spec.obs_dim, spec.act_dim, spec.max_episode_steps, cfg.max_episode_bytes)
+        self.limits = spec.episode_limits(cfg.max_episode_bytes)
         self.rng = np.random.default_rng(seeds.buffer_sampling(cfg.seed))
         self.episodes_received = 0
         self.transitions_received = 0
@@ -197,7 +198,7 @@ class ReplayState:
         """
         self.sample_requests += 1
         rows = req.batches * (req.batch_size + 2 * req.disc_batch_size)
-        row_bytes = 4 * (2 * self.spec.obs_dim + self.spec.act_dim + 1) + 2 + 8  # obs, next_obs, action, reward, flags, version
+        row_bytes = 4 * (2 * self.spec.obs_dim + 1) + self.spec.action_bytes + 2 + 8  # obs, next_obs, reward, action, flags, version
         if rows * row_bytes > P.MAX_REPLY_BYTES:
             e = P.ProtocolError("bad_request", f"a reply of {rows} rows would be {rows * row_bytes / 2**20:.0f} MiB, more "
                                                f"than {P.MAX_REPLY_BYTES >> 20} MiB: at most "
@@ -217,7 +218,7 @@ class ReplayState:
             return P.BatchReply("not_ready", self.meta(), reason="rate_limited", retry_after_ms=20)
         mixed_heap = self.heap if self.algo.mixes_expert else None
         batch = compose_batches(self.fifo, mixed_heap, k, req.batch_size, self.rng, self.labeller, self.spec.obs_dim,
-                                self.spec.act_dim)
+                                self.spec.act_dim, self.spec.action_dtype)
         disc = None
         if req.disc_batch_size:
             assert self.heap is not None

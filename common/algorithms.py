@@ -42,6 +42,8 @@ class Algorithm:
     discriminator: bool = False
     #: options only this algorithm uses (others refuse them with one line)
     options: tuple[str, ...] = ()
+    #: runs on an env with discrete actions (`sac_discrete.py`'s update); the others refuse one with one line
+    discrete: bool = True
 
     def __post_init__(self) -> None:
         if self.expert not in EXPERT_SOURCES or self.labels not in LABELS:
@@ -78,10 +80,11 @@ ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
     Algorithm("sac", "plain SAC on the env's reward (--reward dense or episodic), from D_O alone",
               "Haarnoja et al. 2018", expert="none", labels="env", mixes_expert=False),
     Algorithm("sqil", "constant rewards as SILCR, with D_E fixed to demonstrations (--demos)",
-              "Reddy et al. 2020", expert="demos", labels="constant", mixes_expert=True, options=("demos",)),
+              "Reddy et al. 2020", expert="demos", labels="constant", mixes_expert=True, options=("demos",),
+              discrete=False),  # demonstration files hold continuous actions
     Algorithm("gasil", "SAC on the env's reward plus a discriminator's reward for looking like the top-M D_E",
               "Guo et al. 2018", expert="own", labels="env", mixes_expert=False, discriminator=True,
-              options=_GASIL_OPTIONS),
+              options=_GASIL_OPTIONS, discrete=False),  # its discriminator reads continuous (s, a) pairs
     Algorithm("ircr", "each row labelled with its episode's return per step, min-max normalised over the episodes in "
               "D_O and D_E; top-M D_E by return, half of each batch from it",
               "Gangwani et al. 2020", expert="own", labels="credit", mixes_expert=True),
@@ -109,11 +112,12 @@ def markdown_table() -> str:
     expert = {"own": "the agent's top-M episodes by return", "demos": "demonstrations (`--demos`), fixed", "none": "-"}
     labels = {"constant": "0 (D_O) / 1 (D_E)", "env": "the env's (`--reward`)",
               "credit": "its episode's return per step, min-max normalised over D_O and D_E"}
-    lines = ["| `--algo` | D_E holds | rows' reward | batch | discriminator | own options | source |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| `--algo` | D_E holds | rows' reward | batch | discriminator | discrete actions | own options | source |",
+             "|---|---|---|---|---|---|---|---|"]
     for a in ALGORITHMS.values():
         options = ", ".join(f"`--{o.replace('_', '-')}`" for o in a.options) or "-"
         lines.append(f"| `{a.name}` | {expert[a.expert]} | {labels[a.labels]} | "
                      f"{'half D_O, half D_E' if a.mixes_expert else 'D_O'} | {'yes' if a.discriminator else '-'} | "
+                     f"{'yes' if a.discrete else 'refused'} | "
                      f"{options} | {a.source} |")
     return "\n".join(lines)

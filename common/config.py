@@ -53,7 +53,8 @@ class Config:
     # --- run and environment ------------------------------------------------
     run: str = _opt("", ALL | {"monitor"}, "run name; the Zenoh keys live under silcr/<run>/ (default: <env>-<algo>-<time> for train)")
     runs_dir: str = _opt("runs", SERVICE, "directory holding one sub-directory per run")
-    env: str = _opt("Hopper-v5", ALL, "gymnasium environment id (continuous control, flat Box spaces)")
+    env: str = _opt("Hopper-v5", ALL, "gymnasium environment id: flat Box observations, Box (continuous) or Discrete "
+                    "actions; MiniGrid-* tasks get a flat one-hot view (docs/algorithm.md)")
     algo: str = _opt(algorithms.DEFAULT, ALL, "; ".join(f"{a.name}: {a.summary}" for a in algorithms.ALGORITHMS.values())
                      + " (docs/algorithm.md)", choices=tuple(algorithms.ALGORITHMS))
     reward: str = _opt("episodic", ALL, f"reward the actors' env pays, for the algorithms that learn from it ({', '.join(_ENV_REWARD)}); "
@@ -89,6 +90,8 @@ class Config:
     grad_clip: float = _opt(40.0, {"train", "learner"}, "gradient-norm clip for actor and each critic (0: off)")
     init_alpha: float = _opt(1.0, {"train", "learner"}, "initial entropy temperature")
     time_limit_terminal: bool = _opt(False, {"train", "learner"}, "treat time-limit truncation as terminal, as the official code does")
+    target_entropy_scale: float = _opt(0.89, {"train", "learner"}, "discrete actions: target entropy as a fraction of "
+                                       "log |A| (CleanRL's sac_atari.py: 0.89; Christodoulou 2019: 0.98)")
     tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
     total_steps: int = _opt(2_000_000, {"train", "learner"}, "environment-step budget of the run")
@@ -147,7 +150,7 @@ class Config:
 FIELDS = {f.name: f for f in dataclasses.fields(Config)}
 
 
-def _default(name: str) -> Any:
+def default_of(name: str) -> Any:
     f = FIELDS[name]
     return f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
 
@@ -301,6 +304,8 @@ def validate(cfg: Config, role: str) -> None:
     for name in ("lr", "init_alpha", "disc_lr"):
         if not getattr(cfg, name) > 0:
             raise ConfigError(option_name(name), f"must be > 0, got {getattr(cfg, name)}")
+    if not 0 < cfg.target_entropy_scale <= 1:
+        raise ConfigError("--target-entropy-scale", f"must be in (0, 1], got {cfg.target_entropy_scale}")
     if cfg.grad_clip < 0:
         raise ConfigError("--grad-clip", f"must be >= 0, got {cfg.grad_clip}")
     for name in ("hidden", "disc_hidden"):
@@ -316,7 +321,7 @@ def validate(cfg: Config, role: str) -> None:
     algo = algorithms.algorithm(cfg.algo)
     for name in algorithms.ALGORITHM_OPTIONS:
         # An option only other algorithms use does nothing here: say so rather than ignore it.
-        if name not in algo.options and role in FIELDS[name].metadata["roles"] and getattr(cfg, name) != _default(name):
+        if name not in algo.options and role in FIELDS[name].metadata["roles"] and getattr(cfg, name) != default_of(name):
             users = " or ".join(f"--algo {a}" for a in algorithms.taking(name))
             raise ConfigError(option_name(name), f"only {users} uses it (got --algo {cfg.algo})")
     if role in ("train", "buffer"):

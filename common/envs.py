@@ -4,7 +4,9 @@ The paper's setting (§III-A): the environment gives 0 at every step and the
 episode's summed reward at its last step. `EpisodicReward` turns any gymnasium
 env into that; the episodic versions of the paper's five tasks are registered as
 `silcr/<Task>-v5` (for example `gymnasium.make("silcr/Hopper-v5")`). The project's
-own test task, `silcr/PointGoal-v0` (common/point_goal.py), pays only at the end anyway.
+own test tasks, `silcr/PointGoal-v0` and its discrete twin `silcr/PointGoalDiscrete-v0`
+(common/point_goal.py), pay only at the end anyway, as MiniGrid's tasks do
+(`MiniGrid-*`, made through common/minigrid_obs.py).
 """
 
 from __future__ import annotations
@@ -15,6 +17,9 @@ from typing import Any, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
+
+from silcr.common import protocol as P
+from silcr.common.minigrid_obs import is_minigrid, make_minigrid
 
 PAPER_TASKS = ("Swimmer-v5", "Hopper-v5", "HalfCheetah-v5", "Walker2d-v5", "Humanoid-v5")
 REWARD_MODES = ("episodic", "dense")
@@ -73,7 +78,11 @@ def _route_mujoco_warnings() -> None:
 
 
 def make_env(env_id: str, reward: str = "dense", **kwargs: Any) -> gym.Env:
-    """Make `env_id` with dense or episodic reward; raise ValueError with a clear message on a bad id."""
+    """Make `env_id` with dense or episodic reward; raise ValueError with a clear message on a bad id.
+
+    Observations must be flat vectors; actions a flat Box (continuous) or a Discrete set
+    (action indices). MiniGrid tasks get a flat one-hot view (`minigrid_obs`).
+    """
     _route_mujoco_warnings()
     if reward not in REWARD_MODES:
         raise ValueError(f"reward must be one of {REWARD_MODES}, got {reward!r}")
@@ -81,54 +90,102 @@ def make_env(env_id: str, reward: str = "dense", **kwargs: Any) -> gym.Env:
         # The wrapper is applied below from `reward`, never twice: `silcr/<Task>` with reward
         # "dense" is the plain task (evaluations score the dense return, which sums the same).
         env_id = EPISODIC_IDS[env_id]
-    try:
-        env = gym.make(env_id, **kwargs)
-    except gym.error.Error as e:
-        raise ValueError(f"unknown or unusable environment {env_id!r}: {e}") from None
-    if not isinstance(env.action_space, gym.spaces.Box) or not isinstance(env.observation_space, gym.spaces.Box):
+    if is_minigrid(env_id):
+        env = make_minigrid(env_id, **kwargs)
+    else:
+        try:
+            env = gym.make(env_id, **kwargs)
+        except gym.error.Error as e:
+            raise ValueError(f"unknown or unusable environment {env_id!r}: {e}") from None
+    problem = _unsupported_spaces(env)
+    if problem:
         env.close()
-        raise ValueError(f"environment {env_id!r} needs Box observation and action spaces (continuous control)")
-    if len(env.observation_space.shape) != 1 or len(env.action_space.shape) != 1:
-        env.close()
-        raise ValueError(f"environment {env_id!r} needs flat (1-D) observations and actions")
+        raise ValueError(f"environment {env_id!r} {problem}")
     return EpisodicReward(env) if reward == "episodic" else env
+
+
+def _unsupported_spaces(env: gym.Env) -> str | None:
+    obs, act = env.observation_space, env.action_space
+    if not isinstance(obs, gym.spaces.Box) or len(obs.shape) != 1:
+        return "needs flat (1-D) Box observations"
+    if isinstance(act, gym.spaces.Discrete):
+        if act.n < 2 or act.start != 0:
+            return f"has Discrete({act.n}, start={act.start}) actions; silcr needs at least 2 actions numbered from 0"
+        return None
+    if not isinstance(act, gym.spaces.Box) or len(act.shape) != 1:
+        return "needs flat (1-D) Box (continuous) or Discrete actions"
+    return None
 
 
 @dataclass(frozen=True)
 class EnvSpec:
-    """What the buffer, learner and actors must agree on about the run's env."""
+    """What the buffer, learner and actors must agree on about the run's env.
+
+    Continuous actions are `act_dim` floats, the policy's outputs in [-1, 1]. Discrete
+    actions are one index in [0, n_actions) each, stored as a column of one int64
+    (`act_dim` is 1): the buffer, the wire and the learner carry them as integers.
+    """
 
     env_id: str
     obs_dim: int
-    act_dim: int
+    act_dim: int  # the stored action's width: the Box's size, or 1 (an index) for discrete actions
     action_low: np.ndarray
     action_high: np.ndarray
     max_episode_steps: int  # the time limit, or a generous bound (100,000) for an env without one
     time_limit: int | None = None
+    n_actions: int = 0  # discrete actions: how many; 0 for continuous ones
+
+    @property
+    def discrete(self) -> bool:
+        return self.n_actions > 0
+
+    @property
+    def action_kind(self) -> str:
+        return "discrete" if self.discrete else "continuous"
+
+    @property
+    def action_dtype(self) -> type:
+        """How actions are stored and sent: action indices as int64, continuous actions as float32."""
+        return np.int64 if self.discrete else np.float32
+
+    @property
+    def action_bytes(self) -> int:
+        """Bytes of one stored action."""
+        return self.act_dim * np.dtype(self.action_dtype).itemsize
+
+    def episode_limits(self, max_bytes: int = P.DEFAULT_MAX_EPISODE_BYTES) -> P.EpisodeLimits:
+        """What an episode of this env may be (`protocol.validate_episode`)."""
+        return P.EpisodeLimits(self.obs_dim, self.act_dim, self.max_episode_steps, max_bytes, self.n_actions)
 
     @staticmethod
     def of(env_id: str) -> "EnvSpec":
         env = make_env(env_id)
         try:
-            limit = env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps else None
-            return EnvSpec(
-                env_id,
-                int(env.observation_space.shape[0]),
-                int(env.action_space.shape[0]),
-                np.asarray(env.action_space.low, dtype=np.float32),
-                np.asarray(env.action_space.high, dtype=np.float32),
-                int(limit or 100_000),
-                limit,
-            )
+            # MiniGrid ends its own episodes at `max_steps` instead of through a gymnasium TimeLimit.
+            limit = (env.spec.max_episode_steps if env.spec and env.spec.max_episode_steps
+                     else getattr(env.unwrapped, "max_steps", None))
+            space = env.action_space
+            if isinstance(space, gym.spaces.Discrete):
+                n = int(space.n)
+                low, high, act_dim = np.zeros(1, np.float32), np.full(1, n - 1, np.float32), 1
+            else:
+                n, act_dim = 0, int(space.shape[0])
+                low, high = np.asarray(space.low, dtype=np.float32), np.asarray(space.high, dtype=np.float32)
+            return EnvSpec(env_id, int(env.observation_space.shape[0]), act_dim, low, high, int(limit or 100_000),
+                           limit, n)
         finally:
             env.close()
 
-    def to_env_action(self, squashed: np.ndarray) -> np.ndarray:
-        """Map the policy's [-1, 1] output to the env's bounds (the official code skips this)."""
-        return self.action_low + (np.asarray(squashed) + 1.0) * 0.5 * (self.action_high - self.action_low)
+    def to_env_action(self, action: np.ndarray) -> np.ndarray:
+        """The policy's action as the env takes it: an index as is; a continuous one mapped from [-1, 1]
+        to the env's bounds (the official code skips this). Rows of actions give rows of env actions."""
+        if self.discrete:
+            return np.asarray(action)[..., 0]
+        return self.action_low + (np.asarray(action) + 1.0) * 0.5 * (self.action_high - self.action_low)
 
 
 POINT_GOAL_ID = "silcr/PointGoal-v0"
+POINT_GOAL_DISCRETE_ID = "silcr/PointGoalDiscrete-v0"
 
 
 def _register_tasks() -> None:
@@ -136,10 +193,11 @@ def _register_tasks() -> None:
         eid = f"silcr/{task}"
         if eid not in gym.registry:
             gym.register(id=eid, entry_point=make_env, kwargs={"env_id": task, "reward": "episodic"})
-    if POINT_GOAL_ID not in gym.registry:
-        from silcr.common.point_goal import EPISODE_STEPS
+    from silcr.common.point_goal import EPISODE_STEPS
 
-        gym.register(id=POINT_GOAL_ID, entry_point="silcr.common.point_goal:PointGoalEnv", max_episode_steps=EPISODE_STEPS)
+    for eid, entry in ((POINT_GOAL_ID, "PointGoalEnv"), (POINT_GOAL_DISCRETE_ID, "PointGoalDiscreteEnv")):
+        if eid not in gym.registry:
+            gym.register(id=eid, entry_point=f"silcr.common.point_goal:{entry}", max_episode_steps=EPISODE_STEPS)
 
 
 _register_tasks()

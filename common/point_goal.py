@@ -52,3 +52,24 @@ class PointGoalEnv(gym.Env):
         reward = -distance if self._t >= EPISODE_STEPS else 0.0
         # The episode's end is the time limit (truncation), registered as max_episode_steps.
         return self._obs(), reward, False, False, {"distance": distance}
+
+
+#: The discrete variant's moves: stay, right, left, up, down (each STEP long).
+MOVES = np.array([[0, 0], [1, 0], [-1, 0], [0, 1], [0, -1]], np.float32)
+
+
+class PointGoalDiscreteEnv(PointGoalEnv):
+    """`silcr/PointGoalDiscrete-v0`: the same task with 5 discrete moves (stay, +x, -x, +y, -y).
+
+    It is the discrete ranking test's task (tests/test_ranking.py): the goal is 14 moves
+    away, a uniform random policy's 50 moves scatter it about 0.45 per axis, so D_E ranked
+    by return holds the few episodes that wandered towards the goal, and D_E filled by
+    recency holds whatever came last.
+    """
+
+    def __init__(self) -> None:
+        super().__init__()
+        self.action_space = gym.spaces.Discrete(len(MOVES))
+
+    def step(self, action):
+        return super().step(MOVES[int(action)])

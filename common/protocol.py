@@ -27,7 +27,14 @@ from typing import Any, Callable, Generic, Mapping, TypeVar
 import msgpack
 import numpy as np
 
-SCHEMA_VERSION = 1
+#: Version 2 added the kind of action an episode, a set of weights and a batch carry
+#: (`action_kind`: discrete actions travel as int64 indices). Version 1 messages, which
+#: carry continuous actions only, are still read: a missing `action_kind` is "continuous".
+SCHEMA_VERSION = 2
+READABLE_VERSIONS = (1, 2)
+#: What an env's actions are: float32 vectors in [-1, 1] (continuous) or int64 indices in [0, n) (discrete).
+ACTION_KINDS = ("continuous", "discrete")
+ACTION_WIRE = {"continuous": "<f4", "discrete": "<i8"}
 
 #: Largest episode message the buffer accepts by default (bytes). A 1000-step
 #: Humanoid episode is about 1.5 MB; 64 MB leaves room and still bounds memory.
@@ -179,8 +186,8 @@ def _unpack_map(payload: bytes, max_bytes: int | None = None) -> dict:
     if not isinstance(msg, dict):
         raise ProtocolError("not_a_map", f"message is a msgpack {type(msg).__name__}, expected a map")
     v = msg.get("v")
-    if v != SCHEMA_VERSION:
-        raise ProtocolError("schema_version", f"schema version {v!r}, this build speaks {SCHEMA_VERSION}")
+    if isinstance(v, bool) or v not in READABLE_VERSIONS:
+        raise ProtocolError("schema_version", f"schema version {v!r}, this build reads {list(READABLE_VERSIONS)}")
     return msg
 
 
@@ -219,6 +226,19 @@ def _finite(msg: Mapping, name: str, default: float | None = None) -> float:
     return value
 
 
+def _action_kind(msg: Mapping) -> str:
+    """The message's `action_kind` (absent from version 1 messages: "continuous")."""
+    kind = msg.get("action_kind", "continuous")
+    if kind not in ACTION_KINDS:
+        raise ProtocolError("bad_field", f"action_kind is {kind!r}, expected one of {list(ACTION_KINDS)}")
+    return kind
+
+
+def action_kind_of(actions: np.ndarray) -> str:
+    """Integer actions are action indices (discrete); anything else is a continuous action."""
+    return "discrete" if np.asarray(actions).dtype.kind in "iu" else "continuous"
+
+
 def _get(msg: Mapping, name: str, types: type | tuple[type, ...]) -> Any:
     if name not in msg:
         raise ProtocolError("missing_field", f"field {name!r} is missing")
@@ -244,6 +264,12 @@ class EpisodeLimits:
     act_dim: int
     max_steps: int = 100_000
     max_bytes: int = DEFAULT_MAX_EPISODE_BYTES
+    #: discrete actions: how many (an episode's actions are indices in [0, n_actions)); 0: continuous
+    n_actions: int = 0
+
+    @property
+    def action_kind(self) -> str:
+        return "discrete" if self.n_actions else "continuous"
 
 
 @dataclass
@@ -252,7 +278,8 @@ class Episode:
 
     `obs` has `length + 1` rows: row t is s_t and row t+1 is s_{t+1}, so next
     observations are never stored twice. `actions` are the policy's squashed
-    outputs in [-1, 1] (not rescaled to the env's bounds). `rewards` are the
+    outputs in [-1, 1] (not rescaled to the env's bounds), float32, or for a
+    discrete env one int64 action index per row (shape (length, 1)). `rewards` are the
     rewards the actor's env returned (episodic or dense); SILCR ignores them
     except through `episode_return`, the ranking key.
     """
@@ -273,9 +300,15 @@ class Episode:
     def length(self) -> int:
         return int(self.actions.shape[0])
 
+    @property
+    def action_kind(self) -> str:
+        return action_kind_of(self.actions)
+
     def encode(self) -> bytes:
+        kind = self.action_kind
         return _pack({
             "kind": "episode",
+            "action_kind": kind,
             "actor_id": int(self.actor_id),
             "incarnation": int(self.incarnation),
             "seq": int(self.seq),
@@ -285,7 +318,7 @@ class Episode:
             "terminated": bool(self.terminated),
             "truncated": bool(self.truncated),
             "obs": pack_array(np.asarray(self.obs, dtype="<f4")),
-            "actions": pack_array(np.asarray(self.actions, dtype="<f4")),
+            "actions": pack_array(np.asarray(self.actions, dtype=ACTION_WIRE[kind])),
             "rewards": pack_array(np.asarray(self.rewards, dtype="<f4")),
         })
 
@@ -301,12 +334,15 @@ class Episode:
         incarnation = msg.get("incarnation", 0)  # absent from episodes of actors before 0.2
         if not isinstance(incarnation, int) or isinstance(incarnation, bool):
             raise ProtocolError("bad_field", "field 'incarnation' must be an int")
+        kind = _action_kind(msg)
+        if kind != limits.action_kind:
+            raise ProtocolError("action_kind", f"episode carries {kind} actions, the run's env has {limits.action_kind} ones")
         ep = cls(
             _get(msg, "actor_id", int), _get(msg, "seq", int), _get(msg, "policy_version", int),
             float(_get(msg, "episode_return", (float, int))), _get(msg, "terminated", bool),
             _get(msg, "truncated", bool),
             unpack_array(_get(msg, "obs", (list, tuple)), "obs", "<f4"),
-            unpack_array(_get(msg, "actions", (list, tuple)), "actions", "<f4"),
+            unpack_array(_get(msg, "actions", (list, tuple)), "actions", ACTION_WIRE[kind]),
             unpack_array(_get(msg, "rewards", (list, tuple)), "rewards", "<f4"),
             incarnation,
         )
@@ -321,7 +357,8 @@ def validate_episode(ep: Episode, limits: EpisodeLimits) -> None:
 
     Raise `ProtocolError` with the first problem: every number storable (ids and
     versions in int64) and finite, the arrays shaped for the run's env and for each
-    other, at least one and at most `limits.max_steps` steps, actions in [-1, 1],
+    other, at least one and at most `limits.max_steps` steps, actions of the run's
+    kind (continuous in [-1, 1], or action indices in [0, n_actions)),
     a return equal to the sum of the rewards, and an end (terminated or truncated).
     """
     for name, value, low in (("actor_id", ep.actor_id, 0), ("seq", ep.seq, 0), ("policy_version", ep.policy_version, -1),
@@ -347,7 +384,13 @@ def validate_episode(ep: Episode, limits: EpisodeLimits) -> None:
         raise ProtocolError("non_finite", "episode contains NaN or infinite values")
     if not math.isfinite(ep.episode_return):
         raise ProtocolError("non_finite", "episode_return is NaN or infinite")
-    if np.abs(actions).max() > 1.0 + 1e-5:
+    if action_kind_of(actions) != limits.action_kind:
+        raise ProtocolError("action_kind", f"episode carries {action_kind_of(actions)} actions, the run's env has "
+                                           f"{limits.action_kind} ones")
+    if limits.n_actions:
+        if actions.min() < 0 or actions.max() >= limits.n_actions:
+            raise ProtocolError("action_range", f"action indices must be in [0, {limits.n_actions})")
+    elif np.abs(actions).max() > 1.0 + 1e-5:
         raise ProtocolError("action_range", "actions must be the policy's squashed outputs in [-1, 1]")
     total = float(rewards.sum(dtype=np.float64))
     if abs(total - ep.episode_return) > 1e-3 * max(1.0, abs(ep.episode_return)):
@@ -371,6 +414,8 @@ class Weights:
     #: random id of the learner process that published them: a learner restarted from an
     #: older checkpoint (or none) counts versions again from there, and actors must follow it
     incarnation: int = 0
+    #: the policy's kind: a tanh-Gaussian ("continuous") or a categorical one over action indices ("discrete")
+    action_kind: str = "continuous"
 
     def supersedes(self, current: "Weights | None") -> bool:
         """The actors' rule: take weights that are newer than `current` or come from another learner incarnation."""
@@ -379,6 +424,7 @@ class Weights:
     def encode(self) -> bytes:
         return _pack({
             "kind": "weights",
+            "action_kind": self.action_kind,
             "version": int(self.version),
             "incarnation": int(self.incarnation),
             "sent_at": float(self.sent_at),
@@ -398,7 +444,7 @@ class Weights:
                 raise ProtocolError("non_finite", f"weights {k!r} contain NaN or infinite values")
         sent_at = _finite(msg, "sent_at", default=0.0)  # actors report latencies from it: finite
         incarnation = _int(msg, "incarnation", 0, default=0)  # absent from weights of learners before 0.2
-        return cls(version, params, arch, sent_at, incarnation)
+        return cls(version, params, arch, sent_at, incarnation, _action_kind(msg))
 
 
 def new_incarnation() -> int:
@@ -485,6 +531,7 @@ class Batch(_Rows, Generic[A]):
     `rewards` are the labels the algorithm trains on (set by the buffer's labeller);
     `terminated`/`truncated` are 1 on an episode's last row when it ended that way;
     `policy_version` is the version of the weights that acted (-1: before any).
+    `actions` are float32, or int64 action indices (one column) for a discrete env.
     """
 
     obs: A
@@ -495,15 +542,22 @@ class Batch(_Rows, Generic[A]):
     truncated: A
     policy_version: A
 
-    #: dtype of each field on the wire
+    #: dtype of each field on the wire (`actions`: that of continuous actions; discrete ones are `<i8`)
     WIRE = {"obs": "<f4", "actions": "<f4", "rewards": "<f4", "next_obs": "<f4", "terminated": "|u1",
             "truncated": "|u1", "policy_version": "<i8"}
 
     @classmethod
-    def empty(cls, n: int, obs_dim: int, act_dim: int) -> "Batch[np.ndarray]":
-        return cls(np.empty((n, obs_dim), np.float32), np.empty((n, act_dim), np.float32), np.empty(n, np.float32),
+    def empty(cls, n: int, obs_dim: int, act_dim: int, action_dtype: type = np.float32) -> "Batch[np.ndarray]":
+        return cls(np.empty((n, obs_dim), np.float32), np.empty((n, act_dim), action_dtype), np.empty(n, np.float32),
                    np.empty((n, obs_dim), np.float32), np.empty(n, np.uint8), np.empty(n, np.uint8),
                    np.empty(n, np.int64))
+
+    @property
+    def action_kind(self) -> str:
+        return action_kind_of(self.actions)
+
+    def wire_dtypes(self) -> dict[str, str]:
+        return Batch.WIRE | {"actions": ACTION_WIRE[self.action_kind]}
 
 
 @dataclass
@@ -535,7 +589,9 @@ class BatchReply:
         msg: dict[str, Any] = {"kind": "batch", "status": self.status, "meta": self.meta}
         if self.status == "ok":
             assert self.batch is not None
-            msg["arrays"] = {k: pack_array(np.asarray(getattr(self.batch, k), dtype=dt)) for k, dt in Batch.WIRE.items()}
+            msg["action_kind"] = self.batch.action_kind
+            msg["arrays"] = {k: pack_array(np.asarray(getattr(self.batch, k), dtype=dt))
+                             for k, dt in self.batch.wire_dtypes().items()}
             if self.disc is not None:
                 msg["arrays"] |= {k: pack_array(np.asarray(getattr(self.disc, k.removeprefix("disc_")), dtype=dt))
                                   for k, dt in DiscriminatorRows.WIRE.items()}
@@ -568,7 +624,8 @@ class BatchReply:
         size = _int(meta, "batch_size", 2, MAX_BATCH_SIZE)
         _int(meta, "online_rows", 1, size, default=size)
         raw = _get(msg, "arrays", dict)
-        batch = Batch(**{k: unpack_array(raw.get(k), k, dt) for k, dt in Batch.WIRE.items()})
+        wire = Batch.WIRE | {"actions": ACTION_WIRE[_action_kind(msg)]}
+        batch = Batch(**{k: unpack_array(raw.get(k), k, dt) for k, dt in wire.items()})
         _check_rows(batch, n * size, "batch")
         if batch.next_obs.shape != batch.obs.shape:
             raise ProtocolError("bad_shape", "next_obs and obs differ in shape")

@@ -7,12 +7,13 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.actor.policy import NumpyPolicy
+from silcr.actor.policy import Policy, policy_for
 from silcr.common import protocol as P
 from silcr.common.envs import EnvSpec, make_env
+from silcr.common.minigrid_obs import is_minigrid
 
 
-def rollout(env, policy: NumpyPolicy, spec: EnvSpec, seed: int, deterministic: bool = True,
+def rollout(env, policy: Policy, spec: EnvSpec, seed: int, deterministic: bool = True,
             frames: list[np.ndarray] | None = None) -> P.Episode:
     """One episode of `policy` on a dense-reward `env`, recorded whole (rendered into `frames` if given)."""
     obs, _ = env.reset(seed=seed)
@@ -23,7 +24,7 @@ def rollout(env, policy: NumpyPolicy, spec: EnvSpec, seed: int, deterministic: b
         a = policy.deterministic(obs) if deterministic else policy.sample(obs, rng)
         obs, r, terminated, truncated, _ = env.step(spec.to_env_action(a))
         observations.append(np.asarray(obs, np.float32))
-        actions.append(np.asarray(a, np.float32))
+        actions.append(np.asarray(a, spec.action_dtype))
         rewards.append(float(r))
         if frames is not None:
             frames.append(env.render())
@@ -34,11 +35,12 @@ def rollout(env, policy: NumpyPolicy, spec: EnvSpec, seed: int, deterministic: b
 
 
 def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None) -> tuple[float, float, float]:
-    """Mean and std of the dense return of the deterministic policy (tanh of the mean), and mean length.
+    """Mean and std of the dense return of the deterministic policy (tanh of the mean, or the most likely
+    action), and mean length.
 
     With `video`, the first episode is rendered off-screen and written as MP4.
     """
-    policy = NumpyPolicy(weights, spec.obs_dim, spec.act_dim)
+    policy = policy_for(weights, spec)
     frames: list[np.ndarray] = []
     env = _render_env(spec.env_id) if video else make_env(spec.env_id, "dense")
     try:
@@ -58,7 +60,7 @@ def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video:
 def record_demos(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, deterministic: bool = True,
                  progress=None) -> list[P.Episode]:
     """Roll out `episodes` episodes of the policy for a demonstrations file (dense rewards kept)."""
-    policy = NumpyPolicy(weights, spec.obs_dim, spec.act_dim)
+    policy = policy_for(weights, spec)
     env = make_env(spec.env_id, "dense")
     out = []
     try:
@@ -72,6 +74,8 @@ def record_demos(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, de
 
 
 def _render_env(env_id: str):
+    if is_minigrid(env_id):  # MiniGrid draws its frames itself (pygame surfaces, no OpenGL)
+        return make_env(env_id, "dense", render_mode="rgb_array")
     # Headless: EGL (GPU or Mesa) first, then OSMesa (software); say clearly when neither works.
     tried = []
     for backend in ([os.environ["MUJOCO_GL"]] if "MUJOCO_GL" in os.environ else ["egl", "osmesa"]):
@@ -89,4 +93,6 @@ def _render_env(env_id: str):
 def weights_from_checkpoint(payload: dict) -> tuple[P.Weights, str]:
     sd = payload["sac"]["actor"]
     params = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in sd.items()}
-    return P.Weights(int(payload["counters"]["policy_version"]), params, payload["sac"]["arch"]), str(payload["config"]["env"])
+    arch = payload["sac"]["arch"]
+    return (P.Weights(int(payload["counters"]["policy_version"]), params, arch,
+                      action_kind=arch.get("action_kind", "continuous")), str(payload["config"]["env"]))

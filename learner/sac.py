@@ -27,6 +27,7 @@ docs/algorithm.md, "Divergence"). Differs on purpose: the bootstrap is masked on
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Any
 
 import numpy as np
 import torch
@@ -140,6 +141,51 @@ class SacHyper:
 Q_BOUND_SLACK = 0.5
 
 
+class QBoundWatch:
+    """Counts the updates whose largest Q passes the soft-Q bound (divergence), kept on the device.
+
+    A policy's entropy is at most `entropy_max` (d log 2 for actions in [-1, 1]^d, log |A|
+    for |A| discrete actions), so a soft Q-value is at most
+      (r_max + gamma * alpha * entropy_max) / (1 - gamma).
+    Critics carry the entropy bonus of earlier, larger temperatures for about
+    1 / (tau (1 - gamma)) updates (the target network moves at rate tau, the horizon
+    is 1 / (1 - gamma) backups), so the alpha in the bound is the current one or, if
+    larger, a running value that decays to it at that rate: a falling alpha does not
+    make healthy critics look divergent. Nothing here waits for the device.
+    """
+
+    def __init__(self, entropy_max: float, hp: Any, device: torch.device) -> None:
+        """`hp`: the update's hyperparameters (gamma, tau, init_alpha), continuous or discrete."""
+        self.entropy_max, self.gamma, self.tau = entropy_max, hp.gamma, hp.tau
+        self.reward_max = torch.tensor(float("-inf"), device=device)
+        self.alpha_for_bound = torch.tensor(hp.init_alpha, device=device)
+        self.exceeded = torch.zeros((), dtype=torch.int64, device=device)
+
+    def see(self, q_max: torch.Tensor, rewards: torch.Tensor, alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Update the bound's inputs and the count of updates past it; return (q_max, q_bound)."""
+        torch.maximum(self.reward_max, rewards.max(), out=self.reward_max)
+        decayed = torch.lerp(self.alpha_for_bound, alpha, self.tau * (1.0 - self.gamma))
+        torch.maximum(decayed, alpha, out=self.alpha_for_bound)
+        if self.gamma >= 1.0:  # no discount: no finite bound
+            return q_max, torch.tensor(float("inf"), device=q_max.device)
+        q_bound = (self.reward_max + self.gamma * self.alpha_for_bound * self.entropy_max) / (1.0 - self.gamma)
+        slack = Q_BOUND_SLACK * torch.clamp(q_bound.abs(), min=1.0)
+        self.exceeded += (q_max > q_bound + slack).long()
+        return q_max, q_bound
+
+    def state_dict(self) -> dict[str, torch.Tensor]:
+        return {"reward_max": self.reward_max.detach().cpu(), "alpha_for_bound": self.alpha_for_bound.detach().cpu(),
+                "exceeded": self.exceeded.detach().cpu()}
+
+    def load_state_dict(self, watch: dict[str, torch.Tensor] | None) -> None:
+        if watch is None:  # absent from checkpoints written before it existed
+            return
+        with torch.no_grad():
+            self.reward_max.copy_(watch["reward_max"])
+            self.alpha_for_bound.copy_(watch["alpha_for_bound"])
+            self.exceeded.copy_(watch["exceeded"])
+
+
 def _adam(params: list[torch.Tensor], lr: float) -> torch.optim.Adam:
     try:
         return torch.optim.Adam(params, lr=lr, fused=True)
@@ -155,7 +201,60 @@ def as_floats(stats: dict[str, torch.Tensor]) -> dict[str, float]:
     return dict(zip(stats, values))
 
 
-class Sac:
+class SacState:
+    """What both SAC updates (this one and `sac_discrete.DiscreteSac`) hold under the same names, and so
+    save, restore and send to actors the same way: `actor`, `critic`, `critic_target`, `log_alpha`,
+    their three optimisers, the divergence `watch` and the networks' `arch()`."""
+
+    actor: nn.Module
+    critic: nn.Module
+    critic_target: nn.Module
+    log_alpha: torch.Tensor
+    critic_opt: torch.optim.Optimizer
+    actor_opt: torch.optim.Optimizer
+    alpha_opt: torch.optim.Optimizer
+    watch: QBoundWatch
+
+    def arch(self) -> dict:
+        raise NotImplementedError
+
+    @property
+    def alpha(self) -> float:
+        return float(self.log_alpha.detach().exp())
+
+    @property
+    def q_bound_exceeded(self) -> torch.Tensor:
+        return self.watch.exceeded
+
+    # -- weights for actors -------------------------------------------------------
+    def actor_arrays(self) -> dict[str, np.ndarray]:
+        return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in self.actor.state_dict().items()}
+
+    # -- checkpoints ---------------------------------------------------------------
+    def state_dict(self) -> dict:
+        return {
+            "actor": self.actor.state_dict(),
+            "critic": self.critic.state_dict(),
+            "critic_target": self.critic_target.state_dict(),
+            "log_alpha": self.log_alpha.detach().cpu(),
+            "critic_opt": self.critic_opt.state_dict(),
+            "actor_opt": self.actor_opt.state_dict(),
+            "alpha_opt": self.alpha_opt.state_dict(),
+            "arch": self.arch(),
+            "q_bound_watch": self.watch.state_dict(),
+        }
+
+    def load_state_dict(self, sd: dict) -> None:
+        for name in ("actor", "critic", "critic_target"):
+            getattr(self, name).load_state_dict(sd[name])
+        with torch.no_grad():
+            self.log_alpha.copy_(sd["log_alpha"])
+        for name in ("critic_opt", "actor_opt", "alpha_opt"):
+            getattr(self, name).load_state_dict(sd[name])
+        self.watch.load_state_dict(sd.get("q_bound_watch"))
+
+
+class Sac(SacState):
     """Networks, optimizers and the update. `update(batch)` is one gradient step on everything."""
 
     def __init__(self, obs_dim: int, act_dim: int, hidden: list[int], hp: SacHyper, device: torch.device) -> None:
@@ -178,23 +277,8 @@ class Sac:
         self.critic_opt = _adam(self.critic_params, hp.lr)
         self.actor_opt = _adam(list(self.actor.parameters()), hp.lr)
         self.alpha_opt = _adam([self.log_alpha], hp.lr)
-        # Divergence watch (`q_bound`), kept on the device so that no update waits for it.
-        # The policy's actions lie in [-1, 1]^d, so its entropy is at most d log 2 (the
-        # uniform distribution's), and a soft Q-value is at most
-        #   (r_max + gamma * alpha * d log 2) / (1 - gamma).
-        # Critics carry the entropy bonus of earlier, larger temperatures for about
-        # 1 / (tau (1 - gamma)) updates (the target network moves at rate tau, the horizon
-        # is 1 / (1 - gamma) backups), so the alpha in the bound is the current one or, if
-        # larger, a running value that decays to it at that rate: a falling alpha does not
-        # make healthy critics look divergent.
-        self.entropy_max = act_dim * LOG2
-        self.reward_max = torch.tensor(float("-inf"), device=device)
-        self.alpha_for_bound = torch.tensor(hp.init_alpha, device=device)
-        self.q_bound_exceeded = torch.zeros((), dtype=torch.int64, device=device)
-
-    @property
-    def alpha(self) -> float:
-        return float(self.log_alpha.detach().exp())
+        # Divergence watch (`q_bound`): actions in [-1, 1]^d have at most d log 2 of entropy.
+        self.watch = QBoundWatch(act_dim * LOG2, hp, device)
 
     def update(self, obs, actions, rewards, next_obs, terminated, truncated) -> dict[str, torch.Tensor]:
         """One SAC step on a batch of tensors already on `self.device` (rewards per eq. 3).
@@ -246,7 +330,7 @@ class Sac:
         # Polyak averaging of the target critics: target += tau * (online - target)
         with torch.no_grad():
             torch._foreach_lerp_(self.target_params, self.critic_params, hp.tau)
-            q_max, q_bound = self._watch_q_bound(torch.maximum(q1, q2).max(), rewards, alpha)
+            q_max, q_bound = self.watch.see(torch.maximum(q1, q2).max(), rewards, alpha)
 
         return {
             "critic_loss": (q1_loss + q2_loss).detach() / 2,
@@ -261,55 +345,5 @@ class Sac:
             "q_bound": q_bound,
         }
 
-    def _watch_q_bound(self, q_max: torch.Tensor, rewards: torch.Tensor, alpha: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Update the bound's inputs and the count of updates past it; return (q_max, q_bound)."""
-        hp = self.hp
-        torch.maximum(self.reward_max, rewards.max(), out=self.reward_max)
-        decayed = torch.lerp(self.alpha_for_bound, alpha, hp.tau * (1.0 - hp.gamma))
-        torch.maximum(decayed, alpha, out=self.alpha_for_bound)
-        if hp.gamma >= 1.0:  # no discount: no finite bound
-            return q_max, torch.tensor(float("inf"), device=q_max.device)
-        q_bound = (self.reward_max + hp.gamma * self.alpha_for_bound * self.entropy_max) / (1.0 - hp.gamma)
-        slack = Q_BOUND_SLACK * torch.clamp(q_bound.abs(), min=1.0)
-        self.q_bound_exceeded += (q_max > q_bound + slack).long()
-        return q_max, q_bound
-
-    # -- weights for actors -------------------------------------------------------
-    def actor_arrays(self) -> dict[str, np.ndarray]:
-        return {k: v.detach().cpu().numpy().astype(np.float32) for k, v in self.actor.state_dict().items()}
-
     def arch(self) -> dict:
         return {"obs_dim": self.obs_dim, "act_dim": self.act_dim, "hidden": self.hidden}
-
-    # -- checkpoints ---------------------------------------------------------------
-    def state_dict(self) -> dict:
-        return {
-            "actor": self.actor.state_dict(),
-            "critic": self.critic.state_dict(),
-            "critic_target": self.critic_target.state_dict(),
-            "log_alpha": self.log_alpha.detach().cpu(),
-            "critic_opt": self.critic_opt.state_dict(),
-            "actor_opt": self.actor_opt.state_dict(),
-            "alpha_opt": self.alpha_opt.state_dict(),
-            "arch": self.arch(),
-            "q_bound_watch": {
-                "reward_max": self.reward_max.detach().cpu(),
-                "alpha_for_bound": self.alpha_for_bound.detach().cpu(),
-                "exceeded": self.q_bound_exceeded.detach().cpu(),
-            },
-        }
-
-    def load_state_dict(self, sd: dict) -> None:
-        for name in ("actor", "critic", "critic_target"):
-            getattr(self, name).load_state_dict(sd[name])
-        with torch.no_grad():
-            self.log_alpha.copy_(sd["log_alpha"])
-        self.critic_opt.load_state_dict(sd["critic_opt"])
-        self.actor_opt.load_state_dict(sd["actor_opt"])
-        self.alpha_opt.load_state_dict(sd["alpha_opt"])
-        watch = sd.get("q_bound_watch")  # absent from checkpoints written before it existed
-        if watch is not None:
-            with torch.no_grad():
-                self.reward_max.copy_(watch["reward_max"])
-                self.alpha_for_bound.copy_(watch["alpha_for_bound"])
-                self.q_bound_exceeded.copy_(watch["exceeded"])

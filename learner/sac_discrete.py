@@ -32,9 +32,10 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .sac import _adam, mlp
+from .sac import QBoundWatch, SacState, _adam, mlp
 
-#: silcr's default target entropy, as a fraction of log |A| (CleanRL's sac_atari.py; Christodoulou: 0.98)
+#: silcr's default target entropy, as a fraction of log |A| (CleanRL's sac_atari.py; Christodoulou: 0.98;
+#: `--target-entropy-scale`)
 TARGET_ENTROPY_SCALE = 0.89
 
 
@@ -94,11 +95,15 @@ def soft_target(rewards: torch.Tensor, done: torch.Tensor, next_probs: torch.Ten
     return rewards + gamma * (1.0 - done) * v_next
 
 
+def taken(q: torch.Tensor, actions: torch.Tensor) -> torch.Tensor:
+    """Q(s, a) for each row's action index (`actions`: one index per row, shaped (n,) or (n, 1))."""
+    return q.gather(-1, actions.long().reshape(-1, 1)).squeeze(-1)
+
+
 def critic_losses(q1: torch.Tensor, q2: torch.Tensor, actions: torch.Tensor,
                   y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """(4): each critic's Q(s, a) for the action taken, against y."""
-    index = actions.long().unsqueeze(-1)
-    return F.mse_loss(q1.gather(-1, index).squeeze(-1), y), F.mse_loss(q2.gather(-1, index).squeeze(-1), y)
+    return F.mse_loss(taken(q1, actions), y), F.mse_loss(taken(q2, actions), y)
 
 
 def actor_loss(probs: torch.Tensor, log_probs: torch.Tensor, q1: torch.Tensor, q2: torch.Tensor,
@@ -114,7 +119,7 @@ def alpha_loss(log_alpha: torch.Tensor, probs: torch.Tensor, log_probs: torch.Te
     return -(log_alpha * (neg_entropy + target_entropy)).mean()
 
 
-class DiscreteSac:
+class DiscreteSac(SacState):
     """Networks, optimizers and the update for |A| discrete actions; `update(batch)` is one step on everything."""
 
     def __init__(self, obs_dim: int, n_actions: int, hidden: list[int], hp: DiscreteSacHyper,
@@ -136,13 +141,14 @@ class DiscreteSac:
         self.critic_opt = _adam(self.critic_params, hp.lr)
         self.actor_opt = _adam(list(self.actor.parameters()), hp.lr)
         self.alpha_opt = _adam([self.log_alpha], hp.lr)
+        # Divergence watch (`q_bound`), as in sac.py: a categorical policy's entropy is at most log |A|.
+        self.watch = QBoundWatch(float(np.log(n_actions)), hp, device)
 
-    @property
-    def alpha(self) -> float:
-        return float(self.log_alpha.detach().exp())
+    def arch(self) -> dict:
+        return {"obs_dim": self.obs_dim, "n_actions": self.n_actions, "hidden": self.hidden, "action_kind": "discrete"}
 
     def update(self, obs, actions, rewards, next_obs, terminated, truncated) -> dict[str, torch.Tensor]:
-        """One step on a batch of tensors on `self.device`; `actions` are action indices."""
+        """One step on a batch of tensors on `self.device`; `actions` are action indices ((n,) or (n, 1))."""
         hp = self.hp
         alpha = self.log_alpha.exp().detach()
         done = terminated if not hp.time_limit_terminal else torch.maximum(terminated, truncated)
@@ -182,6 +188,8 @@ class DiscreteSac:
         # Polyak averaging of the target critics
         with torch.no_grad():
             torch._foreach_lerp_(self.target_params, self.critic_params, hp.tau)
+            q1_a = taken(q1.detach(), actions)
+            q_max, q_bound = self.watch.see(torch.maximum(q1_a, taken(q2.detach(), actions)).max(), rewards, alpha)
 
         entropy = -(probs * log_probs).sum(-1).detach().mean()
         return {
@@ -189,7 +197,10 @@ class DiscreteSac:
             "actor_loss": pi_loss.detach(),
             "alpha": alpha,
             "alpha_loss": a_loss.detach(),
-            "q_mean": q1.detach().mean(),
+            "q_mean": q1_a.mean(),
+            "q_max": q_max,
             "target_q_mean": y.mean(),
+            "log_pi_mean": -entropy,  # E_a[log pi(a|s)], exact
             "entropy": entropy,
+            "q_bound": q_bound,
         }

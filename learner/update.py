@@ -1,7 +1,8 @@
 """The learner's gradient steps: SAC on every batch, and GASIL's discriminator first when the algorithm has one.
 
-`Update.train(reply, updates_done)` runs one SAC update (`sac.py`) per batch of a
-buffer reply. With a discriminator (`Algorithm.discriminator`, `gasil.py`) it first
+`Update.train(reply, updates_done)` runs one SAC update per batch of a buffer
+reply: `sac.py`'s for continuous actions, `sac_discrete.py`'s for discrete ones (the
+env's action kind decides, whatever the algorithm). With a discriminator (`Algorithm.discriminator`, `gasil.py`) it first
 steps the discriminator on the reply's D_E and recent D_O rows (every
 `--disc-interval` updates), then shapes that batch's rewards with r_D from the
 discriminator as it is now, never stored. Everything it holds saves and restores
@@ -23,7 +24,8 @@ from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 
 from .gasil import Gasil, GasilHyper
-from .sac import Sac, SacHyper, as_floats
+from .sac import Sac, SacHyper, SacState, as_floats
+from .sac_discrete import DiscreteSac, DiscreteSacHyper
 from .threads import choose_threads, usable_cores
 
 log = logging.getLogger("learner")
@@ -60,11 +62,10 @@ class Update:
     def __init__(self, cfg: Config, spec: EnvSpec) -> None:
         self.cfg = cfg
         self.device = pick_device(cfg.device)
-        hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
-                      cfg.tanh_log_prob)
-        self.torch_threads = self._set_threads(spec, hp)
+        self.spec = spec
+        self.torch_threads = self._set_threads(spec)
         torch.manual_seed(cfg.seed)  # after the thread probe, so that it changes nothing the run draws
-        self.sac = Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
+        self.sac = self._new_sac()
         self.gasil: Gasil | None = None
         if algorithm(cfg.algo).discriminator:
             ghp = GasilHyper(cfg.gasil_alpha, cfg.gasil_reward, tuple(cfg.disc_hidden), cfg.disc_lr, cfg.disc_grad_penalty,
@@ -73,16 +74,29 @@ class Update:
         self._last: dict[str, torch.Tensor] = {}
         self._disc_last: dict[str, torch.Tensor] = {}
 
-    def _set_threads(self, spec: EnvSpec, hp: SacHyper) -> int:
+    def _new_sac(self) -> SacState:
+        """The SAC update for the env's action kind, with this run's hyperparameters."""
+        cfg, spec = self.cfg, self.spec
+        if spec.discrete:
+            dhp = DiscreteSacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, cfg.target_entropy_scale,
+                                   cfg.time_limit_terminal)
+            return DiscreteSac(spec.obs_dim, spec.n_actions, cfg.hidden, dhp, self.device)
+        hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
+                      cfg.tanh_log_prob)
+        return Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
+
+    def _set_threads(self, spec: EnvSpec) -> int:
         """`--torch-threads`, or on a CPU with several cores the faster of 1 and all, timed (`threads.py`)."""
         cores = usable_cores()
         if self.cfg.torch_threads or self.device.type != "cpu" or cores <= 1:
             torch.set_num_threads(self.cfg.torch_threads or torch.get_num_threads())
             return torch.get_num_threads()
-        probe = Sac(spec.obs_dim, spec.act_dim, self.cfg.hidden, hp, self.device)  # a throwaway copy
+        probe = self._new_sac()  # a throwaway copy
         g = torch.Generator().manual_seed(0)
         n = self.cfg.batch_size
-        batch = (torch.randn(n, spec.obs_dim, generator=g), torch.rand(n, spec.act_dim, generator=g) * 2 - 1,
+        actions = (torch.randint(0, spec.n_actions, (n, 1), generator=g) if spec.discrete
+                   else torch.rand(n, spec.act_dim, generator=g) * 2 - 1)
+        batch = (torch.randn(n, spec.obs_dim, generator=g), actions,
                  torch.randint(0, 2, (n,), generator=g).float(), torch.randn(n, spec.obs_dim, generator=g),
                  torch.zeros(n), torch.zeros(n))
         best, times = choose_threads(lambda: probe.update(*batch), cores)
@@ -104,6 +118,9 @@ class Update:
         if self.gasil is not None and reply.disc is None:
             raise BufferMismatch("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
                                  "or predates GASIL (start it with --algo gasil)")
+        if reply.batch.action_kind != self.spec.action_kind:
+            raise BufferMismatch(f"the buffer service sent {reply.batch.action_kind} actions; this learner's env "
+                                 f"{self.spec.env_id} has {self.spec.action_kind} ones (it serves another --env)")
         batch = reply.batch.map(lambda a: to_tensor(a, self.device))
         disc = reply.disc.map(lambda a: to_tensor(a, self.device)) if reply.disc is not None else None
         term, trunc = batch.terminated.float(), batch.truncated.float()
@@ -136,7 +153,8 @@ class Update:
         return [*self._last, "q_bound_exceeded"] if self._last else []
 
     def weights(self, version: int, incarnation: int, sent_at: float) -> P.Weights:
-        return P.Weights(version, self.sac.actor_arrays(), self.sac.arch(), sent_at=sent_at, incarnation=incarnation)
+        return P.Weights(version, self.sac.actor_arrays(), self.sac.arch(), sent_at=sent_at, incarnation=incarnation,
+                         action_kind=self.spec.action_kind)
 
     # -- checkpoints -------------------------------------------------------------------
     def state(self) -> dict[str, Any]:

@@ -131,6 +131,7 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
             spec = EnvSpec.of(cfg.env)
         except ValueError as e:
             raise ConfigError("--env", str(e)) from None
+        _check_action_kind(cfg, spec)
         if (algorithm(cfg.algo).ranks_own_episodes and role in ("train", "buffer") and spec.time_limit
                 and cfg.expert_capacity < spec.time_limit):
             # D_E admits whole episodes: one that never fits leaves it empty, and the learner waits forever.
@@ -160,6 +161,26 @@ def _check_runtime_options(cfg: Config, role: str) -> None:
         session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
     except ValueError as e:
         raise ConfigError("--connect/--listen/--zenoh-config", str(e)) from None
+
+
+def _check_action_kind(cfg: Config, spec: "EnvSpec") -> None:
+    """What the env's kind of action rules out: algorithms and options made for the other kind."""
+    from silcr.common.algorithms import ALGORITHMS
+    from silcr.common.config import default_of, option_name
+
+    algo = algorithm(cfg.algo)
+    if spec.discrete:
+        if not algo.discrete:
+            runs = ", ".join(a.name for a in ALGORITHMS.values() if a.discrete)
+            raise ConfigError("--algo", f"--algo {cfg.algo} does not run with discrete actions ({cfg.env} has "
+                                        f"{spec.n_actions}); these do: {runs}")
+        for name in ("expert_init", "tanh_log_prob"):
+            if getattr(cfg, name) != default_of(name):
+                raise ConfigError(option_name(name), f"applies to continuous actions only; {cfg.env} has "
+                                                     f"{spec.n_actions} discrete actions")
+    elif cfg.target_entropy_scale != default_of("target_entropy_scale"):
+        raise ConfigError("--target-entropy-scale", f"applies to discrete actions only; {cfg.env} has continuous ones "
+                                                    f"(their target entropy is -{spec.act_dim}, minus the action size)")
 
 
 def _check_memory(cfg: Config, role: str, spec: "EnvSpec") -> None:

@@ -51,6 +51,9 @@ def demos_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     from silcr.learner.evaluate import record_demos
 
     spec = EnvSpec.of(env_id)
+    if spec.discrete:  # --algo sqil and --expert-init, which read these files, run with continuous actions only
+        parser.error(f"{args.checkpoint}: {env_id} has discrete actions; demonstrations files hold continuous ones "
+                     f"(for --algo sqil and --expert-init, which refuse discrete actions)")
     print(f"recording {args.episodes} episodes of {env_id}, policy version {weights.version} "
           f"({'stochastic' if args.stochastic else 'deterministic'})", flush=True)
 

@@ -93,7 +93,8 @@ def test_env_spec_and_action_rescaling():
     np.testing.assert_allclose(spec.to_env_action(np.zeros(17)), (spec.action_low + spec.action_high) / 2)
 
 
-@pytest.mark.parametrize("env_id", ["NoSuchEnv-v0", "CartPole-v1"])
-def test_make_env_rejects_unusable_envs(env_id):
-    with pytest.raises(ValueError):
+@pytest.mark.parametrize("env_id,problem", [("NoSuchEnv-v0", "unknown"), ("FrozenLake-v1", "Box observations"),
+                                            ("MiniGrid-NoSuchTask-v0", "unknown")])
+def test_make_env_rejects_unusable_envs(env_id, problem):
+    with pytest.raises(ValueError, match=problem):
         make_env(env_id)

@@ -1,0 +1,186 @@
+"""Discrete actions (issue 19) through every part: MiniGrid's view, the wire, the actors' policy, the
+buffer's integer rows, the learner's update, and refusals of what does not fit.
+
+The update's maths against hand computations is tests/test_sac_discrete.py; the discrete ranking
+test is in tests/test_ranking.py; a distributed MiniGrid run is `test_a_distributed_minigrid_run...`.
+"""
+
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import msgpack
+import numpy as np
+import pytest
+import torch
+
+from silcr.actor.policy import CategoricalPolicy, initial_weights, policy_for
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec, make_env
+from silcr.learner.sac_discrete import CategoricalActor
+from tests.helpers import REPO
+
+MINIGRID = "MiniGrid-DoorKey-5x5-v0"
+N_ACTIONS = 3
+LIMITS = P.EpisodeLimits(obs_dim=4, act_dim=1, max_steps=1000, max_bytes=1 << 20, n_actions=N_ACTIONS)
+
+
+def discrete_episode(length: int = 5, seq: int = 0, actions: list[int] | None = None) -> P.Episode:
+    acts = np.asarray(actions if actions is not None else [t % N_ACTIONS for t in range(length)], np.int64)
+    rewards = np.zeros(len(acts), np.float32)
+    rewards[-1] = 0.5
+    return P.Episode(1, seq, 3, 0.5, True, False, np.arange((len(acts) + 1) * 4, dtype=np.float32).reshape(-1, 4),
+                     acts.reshape(-1, 1), rewards)
+
+
+# -- the env -------------------------------------------------------------------------
+
+
+def test_minigrid_observations_are_the_one_hot_view_then_the_direction():
+    env = make_env(MINIGRID)
+    try:
+        obs, _ = env.reset(seed=3)
+        assert obs.shape == (984,) and obs.dtype == np.float32 and set(np.unique(obs)) <= {0.0, 1.0}
+        # every one of the 7 x 7 cells: one object kind, one colour, one state (20 values, 3 of them 1)
+        assert (obs[:980].reshape(7, 7, 20).sum(-1) == 3).all()
+        assert obs[980:].sum() == 1 and obs[980 + env.unwrapped.agent_dir] == 1
+        obs, *_ = env.step(0)  # turn left: the direction moves round by one
+        assert obs[980 + env.unwrapped.agent_dir] == 1
+    finally:
+        env.close()
+    spec = EnvSpec.of(MINIGRID)
+    assert (spec.discrete, spec.n_actions, spec.act_dim, spec.obs_dim) == (True, 7, 1, 984)
+    assert spec.max_episode_steps == spec.time_limit == 250  # MiniGrid's own max_steps (10 x 5 x 5)
+    assert spec.to_env_action(np.array([[4], [2]])).tolist() == [4, 2]
+
+
+# -- the wire ------------------------------------------------------------------------
+
+
+def test_a_discrete_episode_travels_with_int64_action_indices():
+    ep = P.Episode.decode(discrete_episode().encode(), LIMITS)
+    assert ep.actions.dtype == np.int64 and ep.actions[:, 0].tolist() == [0, 1, 2, 0, 1]
+    assert ep.action_kind == "discrete"
+    assert msgpack.unpackb(discrete_episode().encode())["action_kind"] == "discrete"
+
+
+@pytest.mark.parametrize("payload,limits,reason", [
+    (discrete_episode().encode(), P.EpisodeLimits(4, 1, 1000), "action_kind"),  # to a continuous run
+    (P.Episode(1, 0, 3, 0.0, True, False, np.zeros((3, 4), np.float32), np.zeros((2, 1), np.float32),
+               np.zeros(2, np.float32)).encode(), LIMITS, "action_kind"),  # continuous actions to a discrete run
+    (discrete_episode(actions=[0, 3]).encode(), LIMITS, "action_range"),  # index 3 of 3 actions
+    (discrete_episode(actions=[-1, 0]).encode(), LIMITS, "action_range"),
+])
+def test_actions_of_the_other_kind_or_out_of_range_are_refused(payload, limits, reason):
+    with pytest.raises(P.ProtocolError) as e:
+        P.Episode.decode(payload, limits)
+    assert e.value.reason == reason
+
+
+def test_version_1_messages_are_still_read_as_continuous():
+    v1_episode = msgpack.packb({
+        "v": 1, "kind": "episode", "actor_id": 0, "seq": 0, "policy_version": 0, "episode_return": 1.0, "length": 1,
+        "terminated": True, "truncated": False, "obs": P.pack_array(np.zeros((2, 4), "<f4")),
+        "actions": P.pack_array(np.zeros((1, 1), "<f4")), "rewards": P.pack_array(np.ones(1, "<f4"))}, use_bin_type=True)
+    ep = P.Episode.decode(v1_episode, P.EpisodeLimits(4, 1, 1000))
+    assert ep.action_kind == "continuous" and ep.episode_return == 1.0
+    v1_weights = msgpack.packb({"v": 1, "kind": "weights", "version": 4, "arch": {},
+                                "params": {"w": P.pack_array(np.ones(2, "<f4"))}}, use_bin_type=True)
+    assert P.Weights.decode(v1_weights).action_kind == "continuous"
+    assert msgpack.unpackb(P.ThrottleNotice(True).encode())["v"] == P.SCHEMA_VERSION == 2
+
+
+def test_weights_say_their_kind_and_a_policy_of_the_other_kind_is_refused():
+    w = initial_weights(984, 1, [8], seed=0, n_actions=7)
+    w.version = 0  # initial weights are version -1, which no learner publishes
+    back = P.Weights.decode(w.encode())
+    assert back.action_kind == "discrete"
+    assert isinstance(policy_for(back, EnvSpec.of(MINIGRID)), CategoricalPolicy)
+    with pytest.raises(P.ProtocolError) as e:
+        policy_for(back, EnvSpec.of("InvertedPendulum-v5"))
+    assert e.value.reason == "action_kind"
+    with pytest.raises(P.ProtocolError) as e:  # a discrete policy for another number of actions
+        policy_for(initial_weights(984, 1, [8], seed=0, n_actions=5), EnvSpec.of(MINIGRID))
+    assert e.value.reason == "bad_shape"
+
+
+def test_batch_replies_carry_integer_actions():
+    batch = P.Batch.empty(4, 3, 1, np.int64)
+    for name in ("obs", "next_obs", "rewards"):
+        getattr(batch, name)[:] = 0.0
+    batch.terminated[:] = batch.truncated[:] = 0
+    batch.policy_version[:] = 1
+    batch.actions[:, 0] = [6, 0, 2, 5]
+    reply = P.BatchReply.decode(P.BatchReply("ok", {"batches": 2, "batch_size": 2}, batch).encode())
+    assert reply.batch.actions.dtype == np.int64 and reply.batch.actions[:, 0].tolist() == [6, 0, 2, 5]
+    assert reply.batch.action_kind == "discrete"
+
+
+# -- the actors' policy --------------------------------------------------------------
+
+
+def test_the_actors_categorical_policy_is_the_learners():
+    torch.manual_seed(0)
+    actor = CategoricalActor(6, 4, [16, 16])
+    arrays = {k: v.detach().numpy() for k, v in actor.state_dict().items()}
+    policy = CategoricalPolicy(P.Weights(0, arrays, action_kind="discrete"), 6, 4)
+    obs = np.random.default_rng(0).standard_normal((5, 6)).astype(np.float32)
+    logits = actor(torch.from_numpy(obs)).detach().numpy()
+    np.testing.assert_allclose(policy.logits(obs), logits, rtol=1e-5, atol=1e-5)
+    assert policy.deterministic(obs)[:, 0].tolist() == logits.argmax(-1).tolist()
+    assert policy.deterministic(obs[0]).shape == (1,) and policy.sample(obs, np.random.default_rng(0)).shape == (5, 1)
+    # sampling by the Gumbel-max trick draws from softmax(logits)
+    rng = np.random.default_rng(1)
+    draws = policy.sample(np.repeat(obs[:1], 40_000, 0), rng)[:, 0]
+    probs = np.exp(logits[0] - logits[0].max())
+    probs /= probs.sum()
+    np.testing.assert_allclose(np.bincount(draws, minlength=4) / len(draws), probs, atol=0.01)
+
+
+# -- the learner ---------------------------------------------------------------------
+
+
+def test_the_learner_trains_the_discrete_update_on_integer_batches_and_saves_it():
+    from silcr.learner.sac_discrete import DiscreteSac
+    from silcr.learner.update import BufferMismatch, Update
+
+    spec = EnvSpec.of("silcr/PointGoalDiscrete-v0")
+    cfg = Config(run="t", env=spec.env_id, hidden=[8, 8], batch_size=4, torch_threads=1)
+    update = Update(cfg, spec)
+    assert isinstance(update.sac, DiscreteSac) and update.sac.target_entropy == pytest.approx(0.89 * np.log(5))
+    batch = P.Batch.empty(4, spec.obs_dim, 1, np.int64)
+    batch.obs[:] = batch.next_obs[:] = 0.5
+    batch.rewards[:] = 1.0
+    batch.terminated[:] = batch.truncated[:] = 0
+    batch.policy_version[:] = 0
+    batch.actions[:, 0] = [0, 1, 2, 4]
+    before = {k: v.clone() for k, v in update.sac.critic.state_dict().items()}
+    assert update.train(P.BatchReply("ok", {"batches": 1, "batch_size": 4}, batch), 0) == 1
+    assert any(not torch.equal(before[k], v) for k, v in update.sac.critic.state_dict().items())
+    w = update.weights(1, 7, 0.0)
+    assert w.action_kind == "discrete" and isinstance(policy_for(w, spec), CategoricalPolicy)
+    again = Update(cfg, spec)
+    again.restore(update.state(), "memory")
+    assert torch.equal(again.sac.log_alpha, update.sac.log_alpha)
+    continuous = P.Batch.empty(4, spec.obs_dim, 1)
+    with pytest.raises(BufferMismatch, match="continuous actions"):
+        update.train(P.BatchReply("ok", {"batches": 1, "batch_size": 4}, continuous), 1)
+
+
+# -- what is refused -----------------------------------------------------------------
+
+
+@pytest.mark.parametrize("args,message", [
+    (["--algo", "gasil"], "--algo gasil does not run with discrete actions"),
+    (["--algo", "sqil", "--demos", str(REPO / "tests" / "golden" / "demos-InvertedPendulum-v5.npz")],
+     "--algo sqil does not run with discrete actions"),
+    (["--expert-init", str(REPO / "tests" / "golden" / "demos-InvertedPendulum-v5.npz")], "continuous actions only"),
+])
+def test_what_needs_continuous_actions_is_refused_with_one_line(tmp_path, args, message):
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "train", "--env", MINIGRID, "--runs-dir", str(tmp_path / "runs"),
+                        *args], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert message in r.stderr and len(r.stderr.strip().splitlines()) == 1, r.stderr
+    assert not (tmp_path / "runs").exists()
