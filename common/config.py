@@ -90,6 +90,9 @@ class Config:
     grad_clip: float = _opt(40.0, {"train", "learner"}, "gradient-norm clip for actor and each critic (0: off)")
     init_alpha: float = _opt(1.0, {"train", "learner"}, "initial entropy temperature")
     time_limit_terminal: bool = _opt(False, {"train", "learner"}, "treat time-limit truncation as terminal, as the official code does")
+    absorbing_terminal: bool = _opt(False, {"train", "learner"}, "an episode's end is an absorbing state that keeps paying its "
+                                    "rows' label (target r / (1 - gamma); DAC, SQIL): for labelled algorithms on tasks that "
+                                    "end at success, such as MiniGrid's goal (docs/algorithm.md)")
     target_entropy_scale: float = _opt(0.89, {"train", "learner"}, "discrete actions: target entropy as a fraction of "
                                        "log |A| (CleanRL's sac_atari.py: 0.89; Christodoulou 2019: 0.98)")
     tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
@@ -331,6 +334,12 @@ def validate(cfg: Config, role: str) -> None:
         for name in ("demos", "expert_init"):
             if getattr(cfg, name) and not Path(getattr(cfg, name)).is_file():
                 raise ConfigError(option_name(name), f"no such file: {getattr(cfg, name)}")
+    if cfg.absorbing_terminal and algo.uses_env_reward:
+        raise ConfigError("--absorbing-terminal", f"--algo {cfg.algo} learns from the env's reward, which an absorbing "
+                                                  f"state would pay forever; it is for the labelled algorithms "
+                                                  f"({', '.join(a.name for a in algorithms.ALGORITHMS.values() if not a.uses_env_reward)})")
+    if cfg.absorbing_terminal and cfg.gamma >= 1:
+        raise ConfigError("--absorbing-terminal", "needs --gamma below 1 (an absorbing state's value is r / (1 - gamma))")
     if cfg.env in EPISODIC_IDS and algo.uses_env_reward and cfg.reward == "dense":
         raise ConfigError("--reward", f"{cfg.env} is {EPISODIC_IDS[cfg.env]} with the episodic reward; for the dense "
                                       f"reward use --env {EPISODIC_IDS[cfg.env]}")

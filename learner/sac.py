@@ -133,6 +133,7 @@ class SacHyper:
     target_entropy: float | None = None  # default: -act_dim
     time_limit_terminal: bool = False
     tanh_log_prob: str = "exact"  # or "official": log(1 - tanh(u)^2 + 1e-6)
+    absorbing_terminal: bool = False  # a terminal row's label is paid forever after (`absorbing`)
 
 
 #: An update counts as past the soft-Q bound when its largest Q exceeds the bound by
@@ -184,6 +185,22 @@ class QBoundWatch:
             self.reward_max.copy_(watch["reward_max"])
             self.alpha_for_bound.copy_(watch["alpha_for_bound"])
             self.exceeded.copy_(watch["exceeded"])
+
+
+def absorbing(y: torch.Tensor, rewards: torch.Tensor, done: torch.Tensor, alpha: torch.Tensor, entropy_max: float,
+              gamma: float) -> torch.Tensor:
+    """(5) with an absorbing state after termination (after Kostrikov et al. 2019, DAC, and SQIL): the
+    episode ends in a state that keeps paying the row's label r, where every action does the same,
+    so a maximum-entropy policy there is uniform and earns alpha * entropy_max a step. A terminal
+    row's target is r + gamma (r + alpha entropy_max) / (1 - gamma) instead of r.
+
+    Why (docs/algorithm.md, "Discrete actions"): with constant labels, a plain terminal row stops
+    the stream of 1s that D_E rows earn and the entropy bonus too, so on a task whose episodes end
+    at success (MiniGrid's goal) ending looks worse than wandering on, and the agent learns to
+    avoid the goal. The label alone is not enough: the temperature then rises until the entropy
+    bonus of wandering outweighs it again (measured: docs/algorithm.md).
+    """
+    return y + (gamma / (1.0 - gamma)) * done * (rewards + alpha * entropy_max)
 
 
 def _adam(params: list[torch.Tensor], lr: float) -> torch.optim.Adam:
@@ -295,6 +312,8 @@ class Sac(SacState):
             next_a, next_logp = self.actor.sample(next_obs)
             q_next = torch.min(*self.critic_target(next_obs, next_a))
             y = rewards + hp.gamma * (1.0 - done) * (q_next - alpha * next_logp)
+            if hp.absorbing_terminal:
+                y = absorbing(y, rewards, done, alpha, self.watch.entropy_max, hp.gamma)
 
         # (4) critic loss over the concatenated D_O and D_E halves
         q1, q2 = self.critic(obs, actions)

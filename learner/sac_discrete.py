@@ -32,7 +32,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .sac import QBoundWatch, SacState, _adam, mlp
+from .sac import QBoundWatch, SacState, _adam, absorbing, mlp
 
 #: silcr's default target entropy, as a fraction of log |A| (CleanRL's sac_atari.py; Christodoulou: 0.98;
 #: `--target-entropy-scale`)
@@ -48,6 +48,7 @@ class DiscreteSacHyper:
     init_alpha: float = 1.0
     target_entropy_scale: float = TARGET_ENTROPY_SCALE
     time_limit_terminal: bool = False
+    absorbing_terminal: bool = False  # a terminal row's label is paid forever after (`sac.absorbing`)
 
 
 class CategoricalActor(nn.Module):
@@ -157,6 +158,8 @@ class DiscreteSac(SacState):
         with torch.no_grad():
             next_probs, next_log_probs = self.actor.probs_and_log_probs(next_obs)
             y = soft_target(rewards, done, next_probs, next_log_probs, *self.critic_target(next_obs), alpha, hp.gamma)
+            if hp.absorbing_terminal:
+                y = absorbing(y, rewards, done, alpha, self.watch.entropy_max, hp.gamma)
 
         # (4) critic loss for the actions taken
         q1, q2 = self.critic(obs)

@@ -79,10 +79,10 @@ class Update:
         cfg, spec = self.cfg, self.spec
         if spec.discrete:
             dhp = DiscreteSacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, cfg.target_entropy_scale,
-                                   cfg.time_limit_terminal)
+                                   cfg.time_limit_terminal, cfg.absorbing_terminal)
             return DiscreteSac(spec.obs_dim, spec.n_actions, cfg.hidden, dhp, self.device)
         hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
-                      cfg.tanh_log_prob)
+                      cfg.tanh_log_prob, cfg.absorbing_terminal)
         return Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
 
     def _set_threads(self, spec: EnvSpec) -> int:
