@@ -187,20 +187,22 @@ class QBoundWatch:
             self.exceeded.copy_(watch["exceeded"])
 
 
-def absorbing(y: torch.Tensor, rewards: torch.Tensor, done: torch.Tensor, alpha: torch.Tensor, entropy_max: float,
+def absorbing(y: torch.Tensor, rewards: torch.Tensor, done: torch.Tensor, alpha: torch.Tensor, entropy: torch.Tensor,
               gamma: float) -> torch.Tensor:
     """(5) with an absorbing state after termination (after Kostrikov et al. 2019, DAC, and SQIL): the
-    episode ends in a state that keeps paying the row's label r, where every action does the same,
-    so a maximum-entropy policy there is uniform and earns alpha * entropy_max a step. A terminal
-    row's target is r + gamma (r + alpha entropy_max) / (1 - gamma) instead of r.
+    episode ends in a state that keeps paying the row's label r and the entropy bonus the policy
+    earns now, alpha * `entropy` (its mean entropy over the batch's next states), every step. A
+    terminal row's target is r + gamma (r + alpha entropy) / (1 - gamma) instead of r.
 
     Why (docs/algorithm.md, "Discrete actions"): with constant labels, a plain terminal row stops
     the stream of 1s that D_E rows earn and the entropy bonus too, so on a task whose episodes end
     at success (MiniGrid's goal) ending looks worse than wandering on, and the agent learns to
-    avoid the goal. The label alone is not enough: the temperature then rises until the entropy
-    bonus of wandering outweighs it again (measured: docs/algorithm.md).
+    avoid the goal. With the policy's own entropy, ending and going on earn the same entropy
+    bonus and only the labels tell them apart. Two other choices were measured and failed: the
+    label alone (the temperature rose until wandering won again) and the target entropy (a policy
+    below it gained by ending in proportion to the temperature, which then grew without bound).
     """
-    return y + (gamma / (1.0 - gamma)) * done * (rewards + alpha * entropy_max)
+    return y + (gamma / (1.0 - gamma)) * done * (rewards + alpha * entropy)
 
 
 def _adam(params: list[torch.Tensor], lr: float) -> torch.optim.Adam:
@@ -313,7 +315,7 @@ class Sac(SacState):
             q_next = torch.min(*self.critic_target(next_obs, next_a))
             y = rewards + hp.gamma * (1.0 - done) * (q_next - alpha * next_logp)
             if hp.absorbing_terminal:
-                y = absorbing(y, rewards, done, alpha, self.watch.entropy_max, hp.gamma)
+                y = absorbing(y, rewards, done, alpha, -next_logp.mean(), hp.gamma)
 
         # (4) critic loss over the concatenated D_O and D_E halves
         q1, q2 = self.critic(obs, actions)

@@ -159,7 +159,8 @@ class DiscreteSac(SacState):
             next_probs, next_log_probs = self.actor.probs_and_log_probs(next_obs)
             y = soft_target(rewards, done, next_probs, next_log_probs, *self.critic_target(next_obs), alpha, hp.gamma)
             if hp.absorbing_terminal:
-                y = absorbing(y, rewards, done, alpha, self.watch.entropy_max, hp.gamma)
+                entropy = -(next_probs * next_log_probs).sum(-1).mean()
+                y = absorbing(y, rewards, done, alpha, entropy, hp.gamma)
 
         # (4) critic loss for the actions taken
         q1, q2 = self.critic(obs)

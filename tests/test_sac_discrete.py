@@ -71,10 +71,12 @@ def test_the_update_learns_a_different_best_action_in_each_state():
     assert out["entropy"].item() == pytest.approx(sac.target_entropy, abs=0.25)  # the temperature found its target
 
 
-def test_an_absorbing_terminal_pays_the_label_and_the_uniform_entropy_forever():
+def test_an_absorbing_terminal_pays_the_label_and_the_policys_entropy_forever():
     from silcr.learner.sac import absorbing
 
-    # row 0 ends (done): its target r becomes r + gamma (r + alpha log 2) / (1 - gamma); row 1 goes on unchanged
-    y = absorbing(t([1.0, 5.0]), t([1.0, 1.0]), t([1.0, 0.0]), t(ALPHA), math.log(2), GAMMA)
-    assert y.tolist() == pytest.approx([1.0 + GAMMA * (1.0 + ALPHA * math.log(2)) / (1 - GAMMA), 5.0], abs=1e-5)
-    assert y[0].item() == pytest.approx((1.0 + GAMMA * ALPHA * math.log(2)) / (1 - GAMMA), abs=1e-5)  # the soft-Q bound
+    # row 0 ends (done): its target r becomes r + gamma (r + alpha H) / (1 - gamma); row 1 goes on unchanged
+    entropy = t(0.6)
+    y = absorbing(t([1.0, 5.0]), t([1.0, 1.0]), t([1.0, 0.0]), t(ALPHA), entropy, GAMMA)
+    assert y.tolist() == pytest.approx([1.0 + GAMMA * (1.0 + ALPHA * 0.6) / (1 - GAMMA), 5.0], abs=1e-5)
+    # = (r + gamma alpha H) / (1 - gamma): within the soft-Q bound, whose H is the largest entropy
+    assert y[0].item() == pytest.approx((1.0 + GAMMA * ALPHA * 0.6) / (1 - GAMMA), abs=1e-5)
