@@ -198,9 +198,10 @@ def absorbing(y: torch.Tensor, rewards: torch.Tensor, done: torch.Tensor, alpha:
     the stream of 1s that D_E rows earn and the entropy bonus too, so on a task whose episodes end
     at success (MiniGrid's goal) ending looks worse than wandering on, and the agent learns to
     avoid the goal. With the policy's own entropy, ending and going on earn the same entropy
-    bonus and only the labels tell them apart. Two other choices were measured and failed: the
-    label alone (the temperature rose until wandering won again) and the target entropy (a policy
-    below it gained by ending in proportion to the temperature, which then grew without bound).
+    bonus and only the labels tell them apart. Three other choices were measured and failed: the
+    label alone (the temperature rose until wandering won again), and the largest or the target
+    entropy (a policy below it gained by ending in proportion to the temperature, which then kept
+    growing).
     """
     return y + (gamma / (1.0 - gamma)) * done * (rewards + alpha * entropy)
 
