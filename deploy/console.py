@@ -5,9 +5,31 @@ and `deploy.single_process`.
 
 from __future__ import annotations
 
+import csv
 import sys
 import time
+from pathlib import Path
 from typing import Any
+
+
+def format_return(x: float) -> str:
+    """A return as people read it: 1,234.5-style for MuJoCo, three digits for the returns below 10
+    (MiniGrid pays at most 1; '1.0' would hide the difference between 0.955 and 0.973)."""
+    return f"{x:.3f}" if abs(x) < 10 else f"{x:.1f}"
+
+
+def done_message(run_dir: Path) -> str:
+    """The closing line of a finished run: its last evaluation (the learner's final one) and where the records are."""
+    last = ""
+    try:
+        with open(run_dir / "progress.csv", newline="") as f:
+            rows = list(csv.DictReader(f))
+        if rows and rows[-1].get("eval_return"):
+            last = f" final evaluation {format_return(float(rows[-1]['eval_return']))} at {rows[-1]['env_steps']} env steps;"
+    except (OSError, ValueError, csv.Error):
+        pass  # the line still says where to look
+    return (f"silcr train: done.{last} progress: {run_dir / 'progress.csv'}; "
+            f"TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
 
 
 def divergence_warning(learner_stats: dict[str, Any]) -> str:
@@ -64,7 +86,7 @@ class TrainingDisplay:
             self._warned_divergence = True
             self.say(divergence_warning(learner_stats))
         ev = learner_stats.get("last_eval_return")
-        ev_s = f"{ev:.1f}" if isinstance(ev, (int, float)) else "-"
+        ev_s = format_return(ev) if isinstance(ev, (int, float)) else "-"
         updates, version = learner_stats.get("updates", 0), learner_stats.get("policy_version", 0)
         self._bar.update(self._task, completed=min(env_steps, self.total_steps), updates=updates, version=version,
                          eval=ev_s)

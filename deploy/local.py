@@ -29,7 +29,7 @@ from silcr.common.clients import Shutdown
 from silcr.common.config import Config
 from silcr.common.lifecycle import EXIT_CANNOT_START, StopFlag, setup_logging
 from silcr.common.zenoh_session import open_session, session_config
-from silcr.deploy.console import TrainingDisplay
+from silcr.deploy.console import TrainingDisplay, done_message
 from silcr.deploy.monitor import StatsSnapshot
 
 log = logging.getLogger("train")
@@ -194,7 +194,7 @@ def run_train(cfg: Config) -> int:
         signal.signal(signal.SIGINT, signal.default_int_handler)
         signal.signal(signal.SIGTERM, previous)
     if code == 0:
-        print(f"silcr train: done. progress: {run_dir / 'progress.csv'}; TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
+        print(done_message(run_dir))
     elif code == 1:  # 2 (a component cannot start) has said its one line; 130 is Ctrl-C
         print(f"silcr train: stopped with errors; logs in {run.logs}", file=sys.stderr)
     return code

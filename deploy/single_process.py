@@ -41,7 +41,7 @@ from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.lifecycle import StopFlag
 from silcr.common.schedule import Every
-from silcr.deploy.console import TrainingDisplay
+from silcr.deploy.console import TrainingDisplay, done_message
 from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.learner import Learner
 
@@ -114,7 +114,7 @@ def run_single_process(cfg: Config) -> int:
     for actor in actors:
         actor.close()
     if finished:
-        print(f"silcr train: done. progress: {run_dir / 'progress.csv'}; TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
+        print(done_message(run_dir))
         return 0
     print(f"silcr train: stopped ({stop.reason}) at {learner.books.updates} updates; checkpoints in {run_dir / 'checkpoints'}",
           file=sys.stderr)

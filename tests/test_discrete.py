@@ -198,12 +198,13 @@ def test_a_distributed_minigrid_run_learns_resumes_and_every_command_reads_it(tm
     Then --resume continues the run, and eval (with a MiniGrid video) and plot read it."""
     import csv
 
-    from tests.helpers import train_to_the_end
+    from tests.helpers import free_port, train_to_the_end
 
     run = ["--env", "MiniGrid-Empty-5x5-v0", "--actors", "2", "--hidden", "64", "64", "--learning-starts", "1000",
            "--expert-capacity", "300", "--absorbing-terminal", "--eval-interval", "1000", "--eval-episodes", "5",
            "--checkpoint-interval", "1000", "--torch-threads", "1"]
-    rows, procs = train_to_the_end(tmp_path, "grid", *run, "--total-steps", "5000")
+    rows, procs = train_to_the_end(tmp_path, "grid", *run, "--total-steps", "5000",
+                                   "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}")
     assert procs.orphans == []
     returns = [float(r["eval_return"]) for r in rows]
     # The most likely action can flip between two evaluations a few updates apart (measured: 0.955,
@@ -214,7 +215,8 @@ def test_a_distributed_minigrid_run_learns_resumes_and_every_command_reads_it(tm
     run_dir = tmp_path / "runs" / "grid"
     updates = int(rows[-1]["updates"])
 
-    rows, _ = train_to_the_end(tmp_path, "grid", *run, "--total-steps", "6000", "--resume")
+    rows, _ = train_to_the_end(tmp_path, "grid", *run, "--total-steps", "6000", "--resume",
+                               "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}")
     assert int(rows[-1]["updates"]) > updates and int(rows[-1]["env_steps"]) >= 6000
     assert [int(r["env_steps"]) for r in rows] == sorted(int(r["env_steps"]) for r in rows)
 

@@ -207,3 +207,12 @@ def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probabi
     bad = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(out), "--stats", "rliable",
                           "--compare", "nope"], capture_output=True, text=True, cwd=REPO, timeout=120)
     assert bad.returncode == 2 and "--compare 'nope': no such group" in bad.stderr and "Traceback" not in bad.stderr
+
+
+def test_the_closing_line_gives_the_final_evaluation_with_digits_that_matter(tmp_path):
+    from silcr.deploy.console import done_message, format_return
+
+    (tmp_path / "progress.csv").write_text("env_steps,eval_return\n6067,0.9549999999999998\n7150,0.0\n")
+    assert "final evaluation 0.000 at 7150 env steps" in done_message(tmp_path)  # the last row, not the best
+    assert format_return(0.9549999) == "0.955" and format_return(1234.56) == "1234.6"
+    assert done_message(tmp_path / "missing").startswith("silcr train: done. progress:")
