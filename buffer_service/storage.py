@@ -45,7 +45,8 @@ class RowStorage:
 
     def _allocate(self, ep: Episode) -> None:
         self.obs = np.empty((self.rows, ep.obs.shape[1]), np.float32)
-        self.actions = np.zeros((self.rows, ep.actions.shape[1]), ep.actions.dtype)  # float32, or int64 indices
+        kind = np.int64 if ep.action_kind == "discrete" else np.float32  # action indices, or continuous actions
+        self.actions = np.zeros((self.rows, ep.actions.shape[1]), kind)
         self.rewards = np.zeros(self.rows, np.float32)
 
     def nbytes(self) -> int:
