@@ -178,6 +178,13 @@ def _check_action_kind(cfg: Config, spec: "EnvSpec") -> None:
             if getattr(cfg, name) != default_of(name):
                 raise ConfigError(option_name(name), f"applies to continuous actions only; {cfg.env} has "
                                                      f"{spec.n_actions} discrete actions")
+        from silcr.common.minigrid_obs import is_minigrid
+
+        if is_minigrid(cfg.env) and not algo.uses_env_reward and not cfg.absorbing_terminal:
+            # Not an error (the paper's rule is a valid choice to study), but a trap for a new user.
+            print(f"silcr: warning: {cfg.env}'s episodes end at the goal; with --algo {cfg.algo}'s labels and without "
+                  f"--absorbing-terminal the agent learns to avoid it (docs/algorithm.md, 'Discrete actions')",
+                  file=sys.stderr)
     elif cfg.target_entropy_scale != default_of("target_entropy_scale"):
         raise ConfigError("--target-entropy-scale", f"applies to discrete actions only; {cfg.env} has continuous ones "
                                                     f"(their target entropy is -{spec.act_dim}, minus the action size)")

@@ -233,3 +233,13 @@ def test_a_distributed_minigrid_run_learns_resumes_and_every_command_reads_it(tm
     assert plot.returncode == 0 and (tmp_path / "grid.png").stat().st_size > 0, plot.stdout + plot.stderr
     assert "MiniGrid-Empty-5x5-v0" in plot.stdout
     assert list(csv.DictReader(open(run_dir / "progress.csv")))[-1]["env_steps"] == rows[-1]["env_steps"]
+
+
+def test_silcr_on_minigrid_without_an_absorbing_terminal_is_warned_about(tmp_path):
+    # An endpoint checked after the env makes the command stop there, with the warning already given.
+    args = ["train", "--env", "MiniGrid-Empty-5x5-v0", "--runs-dir", str(tmp_path), "--zenoh-listen", "tcp/127.0.0.1:0"]
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", *args], capture_output=True, text=True, cwd=tmp_path, timeout=120)
+    assert r.returncode == 2 and "learns to avoid it" in r.stderr, r.stderr
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", *args, "--absorbing-terminal"], capture_output=True, text=True,
+                       cwd=tmp_path, timeout=120)
+    assert r.returncode == 2 and "warning" not in r.stderr, r.stderr
