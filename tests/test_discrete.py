@@ -210,7 +210,7 @@ def test_a_distributed_minigrid_run_learns_resumes_and_every_command_reads_it(tm
     assert returns[0] == 0.0, returns
     # Learning shows in one of two places, and the run races actors against the learner, so which
     # one varies: the evaluation of the most likely action reaches the goal (it reached 0.955 in
-    # four of five runs of this test, but the argmax flips), or D_E, which admits only the actors'
+    # five of six distributed runs, but the argmax flips), or D_E, which admits only the actors'
     # own episodes, ends holding only 5-6-step paths (return >= 0.9; a random policy makes about
     # one such episode in 200). With plain termination neither happened in 16k steps: the
     # evaluation stayed 0 and D_E's lowest return 0.31 (RESULTS.md, "Discrete actions").
