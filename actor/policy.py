@@ -24,7 +24,7 @@ def _hidden_layers(p: dict[str, np.ndarray]) -> list[tuple[np.ndarray, np.ndarra
         layers.append((p[f"trunk.{i}.weight"].T.copy(), p[f"trunk.{i}.bias"].copy()))
         i += 2
     if not layers:
-        raise ProtocolError("bad_shape", "weights have no hidden layers")
+        raise ProtocolError("bad_field", "weights have no hidden layers")
     return layers
 
 

@@ -556,8 +556,10 @@ class Batch(_Rows, Generic[A]):
     def action_kind(self) -> str:
         return action_kind_of(self.actions)
 
-    def wire_dtypes(self) -> dict[str, str]:
-        return Batch.WIRE | {"actions": ACTION_WIRE[self.action_kind]}
+    @staticmethod
+    def wire_for(action_kind: str) -> dict[str, str]:
+        """Each field's dtype on the wire for a batch of `action_kind` actions."""
+        return Batch.WIRE | {"actions": ACTION_WIRE[action_kind]}
 
 
 @dataclass
@@ -591,7 +593,7 @@ class BatchReply:
             assert self.batch is not None
             msg["action_kind"] = self.batch.action_kind
             msg["arrays"] = {k: pack_array(np.asarray(getattr(self.batch, k), dtype=dt))
-                             for k, dt in self.batch.wire_dtypes().items()}
+                             for k, dt in Batch.wire_for(self.batch.action_kind).items()}
             if self.disc is not None:
                 msg["arrays"] |= {k: pack_array(np.asarray(getattr(self.disc, k.removeprefix("disc_")), dtype=dt))
                                   for k, dt in DiscriminatorRows.WIRE.items()}
@@ -624,8 +626,7 @@ class BatchReply:
         size = _int(meta, "batch_size", 2, MAX_BATCH_SIZE)
         _int(meta, "online_rows", 1, size, default=size)
         raw = _get(msg, "arrays", dict)
-        wire = Batch.WIRE | {"actions": ACTION_WIRE[_action_kind(msg)]}
-        batch = Batch(**{k: unpack_array(raw.get(k), k, dt) for k, dt in wire.items()})
+        batch = Batch(**{k: unpack_array(raw.get(k), k, dt) for k, dt in Batch.wire_for(_action_kind(msg)).items()})
         _check_rows(batch, n * size, "batch")
         if batch.next_obs.shape != batch.obs.shape:
             raise ProtocolError("bad_shape", "next_obs and obs differ in shape")
