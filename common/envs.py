@@ -153,6 +153,17 @@ class EnvSpec:
         """Bytes of one stored action."""
         return self.act_dim * np.dtype(self.action_dtype).itemsize
 
+    @property
+    def has_goal(self) -> bool:
+        """MiniGrid's tasks end at their goal and pay only there (lava ends an episode too, but pays 0)."""
+        return is_minigrid(self.env_id)
+
+    def reached_goal(self, episode: P.Episode) -> bool | None:
+        """Whether a finished episode reached the task's goal; `None` for tasks without one (MuJoCo's)."""
+        if not self.has_goal:
+            return None
+        return bool(episode.terminated and episode.rewards[-1] > 0)
+
     def episode_limits(self, max_bytes: int = P.DEFAULT_MAX_EPISODE_BYTES) -> P.EpisodeLimits:
         """What an episode of this env may be (`protocol.validate_episode`)."""
         return P.EpisodeLimits(self.obs_dim, self.act_dim, self.max_episode_steps, max_bytes, self.n_actions)

@@ -190,8 +190,8 @@ class Bookkeeping:
         if self.cfg.eval_episodes == 0:
             return
         t0 = time.monotonic()
-        mean, std, length = evaluate(self.weights(), self.spec, self.cfg.eval_episodes,
-                                     seeds.evaluation(self.cfg.seed, self.evals))
+        mean, std, length, success = evaluate(self.weights(), self.spec, self.cfg.eval_episodes,
+                                              seeds.evaluation(self.cfg.seed, self.evals))
         self.evals += 1
         self.last_eval_return = mean
         self.last_eval_updates = self.updates
@@ -212,9 +212,11 @@ class Bookkeeping:
             **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS + GASIL_COLUMNS},
             **{k: self.buffer_meta.get(k) for k in EXPERT_COLUMNS},
             "checkpoints_failed": self.checkpoints_failed,
+            "eval_success": "" if success is None else success,
         })
-        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f, %.1fs)",
-                 self.env_steps, self.updates, mean, std, length, time.monotonic() - t0)
+        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f%s, %.1fs)",
+                 self.env_steps, self.updates, mean, std, length,
+                 "" if success is None else f", goal reached in {success:.0%}", time.monotonic() - t0)
 
     def stats(self) -> dict[str, Any]:
         """The learner's stats message (the batch stream adds its own counters)."""

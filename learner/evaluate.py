@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -34,9 +35,18 @@ def rollout(env, policy: Policy, spec: EnvSpec, seed: int, deterministic: bool =
                      obs=np.stack(observations), actions=np.stack(actions), rewards=rew)
 
 
-def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None) -> tuple[float, float, float]:
-    """Mean and std of the dense return of the deterministic policy (tanh of the mean, or the most likely
-    action), and mean length.
+class Evaluation(NamedTuple):
+    """The deterministic policy over a few episodes: dense return (mean, std), mean length, and the share of
+    episodes that reached the task's goal (`None` for a task without one: `EnvSpec.reached_goal`)."""
+
+    mean: float
+    std: float
+    length: float
+    success: float | None
+
+
+def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None) -> Evaluation:
+    """The deterministic policy (tanh of the mean, or the most likely action) over `episodes` episodes.
 
     With `video`, the first episode is rendered off-screen and written as MP4.
     """
@@ -54,7 +64,9 @@ def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video:
         fps = int(env.metadata.get("render_fps", 30))
         imageio.mimwrite(video, frames, fps=fps, macro_block_size=1)
     returns = [e.episode_return for e in eps]
-    return float(np.mean(returns)), float(np.std(returns)), float(np.mean([e.length for e in eps]))
+    goals = [spec.reached_goal(e) for e in eps]
+    success = None if None in goals else float(np.mean(goals))
+    return Evaluation(float(np.mean(returns)), float(np.std(returns)), float(np.mean([e.length for e in eps])), success)
 
 
 def record_demos(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, deterministic: bool = True,

@@ -31,6 +31,7 @@ PROGRESS_COLUMNS = [
     *EXPERT_COLUMNS,
     *GASIL_COLUMNS,
     "checkpoints_failed",  # learner checkpoints that could not be written (silcr 0.4)
+    "eval_success",  # share of evaluation episodes that reached the goal; empty for tasks without one (silcr 0.5)
 ]
 
 
@@ -55,7 +56,7 @@ class ProgressLog:
         self._csv.writerow(clean)
         self._file.flush()
         step = int(values["env_steps"])
-        for k in ("eval_return", "eval_return_std", "eval_length"):
+        for k in ("eval_return", "eval_return_std", "eval_length", "eval_success"):
             if k in values and isinstance(values[k], (int, float)):
                 self.tb.add_scalar(f"eval/{k.removeprefix('eval_')}", values[k], step)
 

@@ -28,13 +28,14 @@ def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     from silcr.learner.evaluate import evaluate
 
     try:
-        mean, std, length = evaluate(weights, EnvSpec.of(env_id), args.episodes, args.seed,
-                                     Path(args.video) if args.video else None)
+        mean, std, length, success = evaluate(weights, EnvSpec.of(env_id), args.episodes, args.seed,
+                                              Path(args.video) if args.video else None)
     except RuntimeError as e:
         print(f"silcr eval: error: {e}", file=sys.stderr)
         return 1
     print(f"{env_id}, policy version {weights.version}: return {mean:.1f} ± {std:.1f} over {args.episodes} "
-          f"episodes (mean length {length:.0f})" + (f"; video: {args.video}" if args.video else ""))
+          f"episodes (mean length {length:.0f})"
+          + ("" if success is None else f", goal reached in {success:.0%}") + (f"; video: {args.video}" if args.video else ""))
     return 0
 
 

@@ -56,6 +56,35 @@ def test_minigrid_observations_are_the_one_hot_view_then_the_direction():
     assert spec.to_env_action(np.array([[4], [2]])).tolist() == [4, 2]
 
 
+class Scripted:
+    """A policy that plays a fixed list of action indices (for rollouts whose end is known)."""
+
+    version = 0
+
+    def __init__(self, moves: list[int]) -> None:
+        self.moves = iter(moves)
+
+    def deterministic(self, obs):
+        return np.array([next(self.moves, 0)])
+
+
+def test_an_episode_reached_the_goal_when_it_ended_with_a_reward():
+    from silcr.learner.evaluate import rollout
+
+    spec = EnvSpec.of("MiniGrid-Empty-5x5-v0")
+    env = make_env(spec.env_id, "dense")
+    try:
+        # Empty-5x5: the agent starts at (1, 1) facing east, the goal is at (3, 3)
+        path = rollout(env, Scripted([2, 2, 1, 2, 2]), spec, 0)  # forward, forward, turn right, forward, forward
+        circling = rollout(env, Scripted([]), spec, 0)  # turns left until the time limit
+    finally:
+        env.close()
+    assert (path.length, path.terminated, spec.reached_goal(path)) == (5, True, True)
+    assert path.episode_return == pytest.approx(1 - 0.9 * 5 / 100)
+    assert (circling.length, circling.truncated, spec.reached_goal(circling)) == (100, True, False)
+    assert EnvSpec.of("Pendulum-v1").reached_goal(path) is None  # a task without a goal: no success rate
+
+
 # -- the wire ------------------------------------------------------------------------
 
 
@@ -208,6 +237,8 @@ def test_a_distributed_minigrid_run_learns_resumes_and_every_command_reads_it(tm
     assert procs.orphans == []
     returns = [float(r["eval_return"]) for r in rows]
     assert returns[0] == 0.0, returns
+    # the success rate is recorded beside the return, and any return at all means the goal was reached
+    assert [float(r["eval_success"]) > 0 for r in rows] == [x > 0 for x in returns], rows
     # Learning shows in one of two places, and the run races actors against the learner, so which
     # one varies: the evaluation of the most likely action reaches the goal (it reached 0.955 in
     # five of six distributed runs, but the argmax flips), or D_E, which admits only the actors'
@@ -228,7 +259,8 @@ def test_a_distributed_minigrid_run_learns_resumes_and_every_command_reads_it(tm
     video = tmp_path / "grid.mp4"
     ev = subprocess.run([sys.executable, "-m", "silcr.cli", "eval", str(run_dir / "checkpoints" / "learner.pt"),
                          "--episodes", "3", "--video", str(video)], capture_output=True, text=True, timeout=300, cwd=REPO)
-    assert ev.returncode == 0 and "MiniGrid-Empty-5x5-v0" in ev.stdout, ev.stdout + ev.stderr
+    assert ev.returncode == 0 and "MiniGrid-Empty-5x5-v0" in ev.stdout and "goal reached in" in ev.stdout, \
+        ev.stdout + ev.stderr
     import imageio.v2 as imageio
 
     frames = imageio.mimread(video)
