@@ -1,4 +1,4 @@
-"""`silcr bench [learner|buffer|actor|e2e|scale|all]`: run benchmarks, print tables, write JSON."""
+"""`silcr bench [learner|buffer|actor|e2e|scale|peer|all]`: run benchmarks, print tables, write JSON."""
 
 from __future__ import annotations
 
@@ -6,9 +6,11 @@ from pathlib import Path
 
 
 def run_bench(which: str, out_dir: Path, device: str, quick: bool, counts: list[int] | None = None,
-              envs_per_actor: int = 1, seconds: float = 0.0) -> int:
-    from . import actor, buffer, e2e, learner, scale
+              envs_per_actor: int = 1, seconds: float = 0.0, rounds: int = 0) -> int:
+    from . import actor, buffer, e2e, learner, peer, scale
 
+    if which == "peer":
+        peer.run(out_dir, quick, rounds)
     if which == "scale":
         scale.run(out_dir, quick, counts or None, envs_per_actor, seconds=seconds or None)
 

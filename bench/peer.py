@@ -1,0 +1,177 @@
+"""`silcr bench peer`: silcr against the library a user would otherwise pick, Stable-Baselines3's SAC,
+on the same work, measured in the same run.
+
+Three programs train SAC with the dense reward on Hopper-v5 with the same networks, batch,
+learning rate, tau, gamma, warm-up and budget, evaluation off, each with its own defaults
+otherwise (threads included, as a user would run them):
+
+- `sb3`: Stable-Baselines3's `SAC("MlpPolicy", ...)` (the optional extra `pip install -e ".[bench]"`);
+- `silcr`: `silcr train` with its defaults (a buffer service, a learner and one actor over Zenoh);
+- `single`: `silcr train --single-process`.
+
+They run alternated, round after round, so that each round exposes all three to the same
+background load, and the bench reports each silcr program's wall and CPU time (user + sys of the
+whole process tree) as ratios to SB3's of the same round: min, median and max over the rounds.
+Each program reports the updates it made, so the table also shows that the work was the same.
+"""
+
+from __future__ import annotations
+
+import json
+import resource
+import statistics
+import subprocess
+import sys
+import tempfile
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from silcr.cli import command
+
+from .procs import free_port
+from .timing import print_table, write_json
+
+PROGRAMS = ("sb3", "silcr", "single")
+MISSING_SB3 = ("silcr bench peer: Stable-Baselines3 is not installed; install the bench extra "
+               "(pip install -e \".[bench]\", or pip install stable-baselines3) and run it again")
+
+
+@dataclass(frozen=True)
+class PeerConfig:
+    """What both libraries are told; everything else is each one's default."""
+
+    hidden: tuple[int, ...] = (256, 256)
+    env_id: str = "Hopper-v5"
+    batch_size: int = 128
+    lr: float = 3e-4
+    tau: float = 0.005
+    gamma: float = 0.99
+    learning_starts: int = 5000
+    total_steps: int = 15000
+    seed: int = 0
+
+    def silcr_args(self, runs_dir: Path, run: str, single_process: bool) -> list[str]:
+        """`silcr train` options: one update per env step after the warm-up (silcr's default), no evaluation."""
+        return ["train", "--run", run, "--runs-dir", str(runs_dir), "--env", self.env_id, "--algo", "sac",
+                "--reward", "dense", "--hidden", *map(str, self.hidden), "--batch-size", str(self.batch_size),
+                "--lr", str(self.lr), "--tau", str(self.tau), "--gamma", str(self.gamma),
+                "--learning-starts", str(self.learning_starts), "--total-steps", str(self.total_steps),
+                "--seed", str(self.seed), "--eval-episodes", "0",
+                *(["--single-process"] if single_process else ["--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"])]
+
+    def sb3_kwargs(self) -> dict[str, Any]:
+        """`stable_baselines3.SAC` arguments: one gradient step per env step after the warm-up (SB3's default)."""
+        return {"policy": "MlpPolicy", "learning_rate": self.lr, "buffer_size": self.total_steps,
+                "learning_starts": self.learning_starts, "batch_size": self.batch_size, "tau": self.tau,
+                "gamma": self.gamma, "train_freq": 1, "gradient_steps": 1, "seed": self.seed, "device": "cpu",
+                "policy_kwargs": {"net_arch": list(self.hidden)}, "verbose": 0}
+
+
+# Run in a plain interpreter: importing silcr would set its thread-pool defaults (silcr/__init__.py)
+# on the peer, which must run with its own.
+SB3_SCRIPT = """
+import json, sys
+import gymnasium as gym
+from stable_baselines3 import SAC
+cfg = json.loads(sys.argv[1])
+model = SAC(env=gym.make(cfg["env_id"]), **cfg["kwargs"])
+model.learn(total_timesteps=cfg["total_steps"])
+print(json.dumps({"updates": int(model._n_updates), "env_steps": int(model.num_timesteps)}))
+"""
+
+
+def sb3_available() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("stable_baselines3") is not None
+
+
+def _timed(cmd: list[str], timeout: float) -> tuple[float, float, str]:
+    """Wall and CPU seconds (user + sys of the process and every child it waited for) of one command, and its stdout."""
+    before = resource.getrusage(resource.RUSAGE_CHILDREN)
+    t0 = time.perf_counter()
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    wall = time.perf_counter() - t0
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    if r.returncode != 0:
+        tail = (r.stderr or r.stdout).strip().splitlines()[-5:]
+        raise RuntimeError(f"{' '.join(cmd[:1] + cmd[3:6])}... exited {r.returncode}: " + " | ".join(tail))
+    cpu = (after.ru_utime - before.ru_utime) + (after.ru_stime - before.ru_stime)
+    return wall, cpu, r.stdout
+
+
+def run_once(program: str, cfg: PeerConfig, timeout: float = 3600) -> dict[str, Any]:
+    """One training run of `program`: its wall and CPU seconds and the work it did."""
+    if program == "sb3":
+        payload = json.dumps({"env_id": cfg.env_id, "total_steps": cfg.total_steps, "kwargs": cfg.sb3_kwargs()})
+        wall, cpu, out = _timed([sys.executable, "-c", SB3_SCRIPT, payload], timeout)
+        work = json.loads(out.strip().splitlines()[-1])
+    else:
+        import torch
+
+        runs_dir = Path(tempfile.mkdtemp(prefix=f"silcr-bench-peer-{program}-"))
+        wall, cpu, _ = _timed(command(*cfg.silcr_args(runs_dir, "peer", program == "single")), timeout)
+        counters = torch.load(runs_dir / "peer" / "checkpoints" / "learner.pt", map_location="cpu",
+                              weights_only=True)["counters"]
+        work = {"updates": int(counters["updates"]), "env_steps": int(counters["env_steps"])}
+    return {"program": program, "wall_s": wall, "cpu_s": cpu, **work}
+
+
+def _spread(values: list[float]) -> dict[str, float]:
+    return {"min": min(values), "median": statistics.median(values), "max": max(values)}
+
+
+def compare(cfg: PeerConfig, rounds: int) -> dict[str, Any]:
+    """`rounds` rounds of the three programs in turn (the order rotates), and silcr's ratios to SB3 per round."""
+    runs: list[dict[str, Any]] = []
+    for r in range(rounds):
+        order = PROGRAMS[r % 3:] + PROGRAMS[:r % 3]
+        got = {}
+        for program in order:
+            got[program] = run_once(program, cfg)
+            got[program]["round"] = r
+            print(f"  {'x'.join(map(str, cfg.hidden))} round {r + 1}/{rounds} {program}: "
+                  f"{got[program]['wall_s']:.1f} s wall, {got[program]['cpu_s']:.1f} s CPU, "
+                  f"{got[program]['updates']} updates", flush=True)
+        runs.extend(got[p] for p in PROGRAMS)
+    ratios = {}
+    for program in PROGRAMS[1:]:
+        for what in ("wall_s", "cpu_s"):
+            per_round = [next(x for x in runs if x["round"] == r and x["program"] == program)[what]
+                         / next(x for x in runs if x["round"] == r and x["program"] == "sb3")[what]
+                         for r in range(rounds)]
+            ratios[f"{program}_{what.removesuffix('_s')}"] = _spread(per_round)
+    return {"config": asdict(cfg), "runs": runs, "ratios": ratios}
+
+
+def run(out_dir: Path, quick: bool = False, rounds: int = 0) -> dict[str, Any]:
+    if not sb3_available():
+        raise SystemExit(MISSING_SB3)
+    if quick:  # a smoke test of the bench: small budget, one round, the small network
+        configs = [PeerConfig(hidden=(256, 256), learning_starts=500, total_steps=800)]
+    else:
+        configs = [PeerConfig(hidden=(256, 256)), PeerConfig(hidden=(800, 400))]
+    rounds = rounds or (1 if quick else 3)
+    results = []
+    for cfg in configs:
+        print(f"silcr bench peer: {cfg.env_id}, SAC dense, {'x'.join(map(str, cfg.hidden))}, batch {cfg.batch_size}, "
+              f"{cfg.learning_starts:,} warm-up + {cfg.total_steps - cfg.learning_starts:,} steps, {rounds} round(s)",
+              flush=True)
+        results.append(compare(cfg, rounds))
+    rows = []
+    for res in results:
+        net = "x".join(map(str, res["config"]["hidden"]))
+        for program, label in (("silcr", "silcr train (defaults)"), ("single", "silcr train --single-process")):
+            for what in ("wall", "cpu"):
+                s = res["ratios"][f"{program}_{what}"]
+                rows.append([net, label, f"{what} / SB3's", s["min"], s["median"], s["max"]])
+        for program in PROGRAMS:
+            mine = [x for x in res["runs"] if x["program"] == program]
+            rows.append([net, program, "updates, median wall s", statistics.median(x["updates"] for x in mine),
+                         statistics.median(x["wall_s"] for x in mine), ""])
+    print_table("silcr against Stable-Baselines3's SAC, same work, alternated (ratio < 1: silcr is faster)",
+                ["network", "program", "quantity", "min", "median", "max"], rows)
+    write_json(out_dir, "peer", {"results": results})
+    return {"results": results}
