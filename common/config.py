@@ -101,6 +101,9 @@ class Config:
     weights_interval: int = _opt(50, {"train", "learner"}, "publish policy weights every N updates")
     eval_interval: int = _opt(5_000, {"train", "learner"}, "evaluate the deterministic policy every N environment steps")
     eval_episodes: int = _opt(5, {"train", "learner"}, "episodes per evaluation")
+    eval_stochastic: bool = _opt(False, {"train", "learner"}, "evaluate by sampling the policy's actions (seeded) instead "
+                                 "of its deterministic ones: a memoryless policy in a partial view, such as MiniGrid's, "
+                                 "can loop forever on its most likely actions (docs/algorithm.md)")
     checkpoint_interval: int = _opt(10_000, {"train", "learner"}, "checkpoint every N updates (and at the end)")
     resume: bool = _opt(False, SERVICE, "continue from the checkpoints in <run dir>/checkpoints/ when they exist (learner: networks, optimizers, alpha, counters; buffer: D_O, D_E, counters)")
     device: str = _opt("auto", {"train", "learner"}, "torch device for the learner (auto: CUDA when present)", choices=DEVICES)

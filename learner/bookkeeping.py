@@ -186,12 +186,13 @@ class Bookkeeping:
 
     # -- records ---------------------------------------------------------------------
     def evaluate(self) -> None:
-        """Evaluate the deterministic policy and write a progress row."""
+        """Evaluate the policy (deterministic unless --eval-stochastic) and write a progress row."""
         if self.cfg.eval_episodes == 0:
             return
         t0 = time.monotonic()
         mean, std, length, success = evaluate(self.weights(), self.spec, self.cfg.eval_episodes,
-                                              seeds.evaluation(self.cfg.seed, self.evals))
+                                              seeds.evaluation(self.cfg.seed, self.evals),
+                                              deterministic=not self.cfg.eval_stochastic)
         self.evals += 1
         self.last_eval_return = mean
         self.last_eval_updates = self.updates

@@ -45,8 +45,10 @@ class Evaluation(NamedTuple):
     success: float | None
 
 
-def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None) -> Evaluation:
-    """The deterministic policy (tanh of the mean, or the most likely action) over `episodes` episodes.
+def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None,
+             deterministic: bool = True) -> Evaluation:
+    """The deterministic policy (tanh of the mean, or the most likely action), or with `deterministic` false
+    the policy's sampled actions (seeded by `seed`), over `episodes` episodes.
 
     With `video`, the first episode is rendered off-screen and written as MP4.
     """
@@ -54,7 +56,7 @@ def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video:
     frames: list[np.ndarray] = []
     env = _render_env(spec.env_id) if video else make_env(spec.env_id, "dense")
     try:
-        eps = [rollout(env, policy, spec, seed + i, True, frames if video and i == 0 else None) for i in range(episodes)]
+        eps = [rollout(env, policy, spec, seed + i, deterministic, frames if video and i == 0 else None) for i in range(episodes)]
     finally:
         env.close()
     if video:

@@ -74,6 +74,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--episodes", type=int, default=10, help="evaluation episodes (default: 10)")
             p.add_argument("--seed", type=int, default=12345, help="seed of the first episode (default: 12345)")
             p.add_argument("--video", default=None, help="write the first episode as an MP4, rendered off-screen")
+            p.add_argument("--stochastic", action="store_true", help="sample the policy's actions (seeded) instead of "
+                           "taking its deterministic ones (tanh of the mean, or the most likely action)")
             continue
         if role == "demos":
             p.add_argument("checkpoint", help="a learner checkpoint, normally of dense-reward SAC (runs/<run>/checkpoints/learner.pt)")
@@ -96,13 +98,16 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--port-base", type=int, default=17500, help="first router port; cell i uses port-base + i (default: 17500)")
             continue
         if role == "bench":
-            p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "scale", "all"],
-                           help="which benchmark; `all` runs every one but scale (which starts up to 128 actors)")
+            p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "scale", "peer", "all"],
+                           help="which benchmark; `all` runs every one but scale (which starts up to 128 actors) "
+                                "and peer (Stable-Baselines3 beside silcr train, about 20 minutes per round)")
             p.add_argument("--counts", default="", help="scale: actor counts, comma-separated (default: 8,32,128; "
                                                         "--quick: 2,4)")
             p.add_argument("--envs-per-actor", type=int, default=1, help="scale: envs in each actor process (default: 1)")
             p.add_argument("--seconds", type=float, default=0.0, help="scale: the measurement window per count "
                                                                        "(default: 60; --quick: 10)")
+            p.add_argument("--rounds", type=int, default=0, help="peer: rounds of the three programs (default: 3; "
+                                                                  "--quick: 1)")
             p.add_argument("--out", default="bench-results", help="directory for the JSON results (default: bench-results)")
             p.add_argument("--device", default="auto", choices=["auto", "cpu", "cuda"], help="learner benchmark device (default: auto: CPU, and CUDA when present)")
             p.add_argument("--quick", action="store_true", help="short measurements (a smoke test of the suite)")
@@ -263,10 +268,16 @@ def _main(argv: list[str] | None) -> int:
             counts = [int(c) for c in args.counts.split(",") if c.strip()]
         except ValueError:
             subs[role].error(f"--counts: {args.counts!r} is not a comma-separated list of actor counts")
-        if any(c < 1 for c in counts) or args.envs_per_actor < 1 or args.seconds < 0:
-            subs[role].error("--counts, --envs-per-actor and --seconds must be positive")
+        if any(c < 1 for c in counts) or args.envs_per_actor < 1 or args.seconds < 0 or args.rounds < 0:
+            subs[role].error("--counts, --envs-per-actor, --seconds and --rounds must be positive")
+        if args.which == "peer":
+            from silcr.bench.peer import MISSING_SB3, sb3_available
+
+            if not sb3_available():
+                print(MISSING_SB3, file=sys.stderr)
+                return 2
         return run_bench(args.which, Path(args.out), args.device, args.quick, counts, args.envs_per_actor,
-                         args.seconds)
+                         args.seconds, args.rounds)
     if role == "router":
         from silcr.common.zenoh_session import check_endpoint
 

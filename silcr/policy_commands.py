@@ -22,18 +22,19 @@ def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentP
 
 
 def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    """`silcr eval CHECKPOINT [--episodes N] [--video out.mp4]`."""
+    """`silcr eval CHECKPOINT [--episodes N] [--video out.mp4] [--stochastic]`."""
     weights, env_id = _policy_from_checkpoint(args, parser)
     from silcr.common.envs import EnvSpec
     from silcr.learner.evaluate import evaluate
 
     try:
         mean, std, length, success = evaluate(weights, EnvSpec.of(env_id), args.episodes, args.seed,
-                                              Path(args.video) if args.video else None)
+                                              Path(args.video) if args.video else None, not args.stochastic)
     except RuntimeError as e:
         print(f"silcr eval: error: {e}", file=sys.stderr)
         return 1
-    print(f"{env_id}, policy version {weights.version}: return {mean:.1f} ± {std:.1f} over {args.episodes} "
+    sampled = ", sampled actions" if args.stochastic else ""
+    print(f"{env_id}, policy version {weights.version}{sampled}: return {mean:.1f} ± {std:.1f} over {args.episodes} "
           f"episodes (mean length {length:.0f})"
           + ("" if success is None else f", goal reached in {success:.0%}") + (f"; video: {args.video}" if args.video else ""))
     return 0

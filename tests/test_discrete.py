@@ -85,6 +85,32 @@ def test_an_episode_reached_the_goal_when_it_ended_with_a_reward():
     assert EnvSpec.of("Pendulum-v1").reached_goal(path) is None  # a task without a goal: no success rate
 
 
+def test_the_untrained_policy_loops_on_its_most_likely_action_but_reaches_the_goal_sampling(tmp_path):
+    """Why --eval-stochastic exists: a memoryless policy in a partial view repeats its most likely action
+    when the view repeats; sampled, the same policy reaches the goal in some episodes."""
+    import csv
+
+    from silcr.learner.evaluate import evaluate
+    from tests.helpers import free_port
+
+    spec = EnvSpec.of("MiniGrid-Empty-5x5-v0")
+    weights = initial_weights(spec.obs_dim, spec.act_dim, [64, 64], seed=0, n_actions=spec.n_actions)
+    assert evaluate(weights, spec, 20, 0).success == 0.0
+    sampled = evaluate(weights, spec, 20, 0, deterministic=False)
+    assert 0 < sampled.success < 1 and sampled == evaluate(weights, spec, 20, 0, deterministic=False)  # seeded
+
+    # and the option reaches the learner's evaluation
+    run = ["train", "--run", "st", "--runs-dir", str(tmp_path), "--env", spec.env_id, "--single-process",
+           "--hidden", "64", "64", "--learning-starts", "100", "--total-steps", "150", "--eval-episodes", "20",
+           "--absorbing-terminal", "--torch-threads", "1", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"]
+    for flag in ([], ["--eval-stochastic"]):
+        r = subprocess.run([sys.executable, "-m", "silcr.cli", *run, *flag, "--run", f"st{len(flag)}"],
+                           capture_output=True, text=True, timeout=300, cwd=REPO)
+        assert r.returncode == 0, r.stderr[-2000:]
+        first = next(csv.DictReader(open(tmp_path / f"st{len(flag)}" / "progress.csv")))
+        assert (float(first["eval_success"]) > 0) == bool(flag), first
+
+
 # -- the wire ------------------------------------------------------------------------
 
 
