@@ -522,7 +522,8 @@ class InProcessWeights(WeightsServer):
         self.latest: P.Weights | None = None
 
     def publish(self, weights: P.Weights) -> None:
-        self.latest = weights
+        # the actors act with what the wire would have given them (float16 weights rounded)
+        self.latest = weights if weights.wire_dtype == "float32" else P.Weights.decode(weights.encode())
 
     def client(self, make_policy: Callable[[P.Weights], PolicyT], initial: P.Weights) -> "InProcessWeightsClient[PolicyT]":
         c = InProcessWeightsClient(self, make_policy, initial)

@@ -20,7 +20,7 @@ import tomli_w
 
 from silcr.common import algorithms
 from silcr.common.envs import EPISODIC_IDS, REWARD_MODES
-from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, validate_run_name
+from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, WEIGHTS_WIRE, validate_run_name
 
 _ENV_REWARD = [a.name for a in algorithms.ALGORITHMS.values() if a.uses_env_reward]
 GASIL_REWARD_FORMS = ("logit", "positive", "negative")  # r_D from the discriminator (learner.gasil)
@@ -99,6 +99,9 @@ class Config:
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
     total_steps: int = _opt(2_000_000, {"train", "learner"}, "environment-step budget of the run")
     weights_interval: int = _opt(50, {"train", "learner"}, "publish policy weights every N updates")
+    weights_dtype: str = _opt("float32", {"train", "learner"}, "how policy weights travel to the actors: float32, or "
+                              "float16 (half the bytes of every publication to every actor; the actors' actions stay "
+                              "within 0.01 of float32's: docs/protocol.md)", choices=tuple(WEIGHTS_WIRE))
     eval_interval: int = _opt(5_000, {"train", "learner"}, "evaluate the deterministic policy every N environment steps")
     eval_episodes: int = _opt(5, {"train", "learner"}, "episodes per evaluation")
     eval_stochastic: bool = _opt(False, {"train", "learner"}, "evaluate by sampling the policy's actions (seeded) instead "

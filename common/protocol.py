@@ -18,6 +18,7 @@ without this package. What makes an episode valid is stated once, in
 from __future__ import annotations
 
 import json
+import logging
 import math
 import os
 import re
@@ -30,11 +31,15 @@ import numpy as np
 #: Version 2 added the kind of action an episode, a set of weights and a batch carry
 #: (`action_kind`: discrete actions travel as int64 indices). Version 1 messages, which
 #: carry continuous actions only, are still read: a missing `action_kind` is "continuous".
-SCHEMA_VERSION = 2
-READABLE_VERSIONS = (1, 2)
+#: Version 3 added `param_dtype` to weights: their arrays may travel as float16, half the
+#: bytes of every publication's fan-out to the actors; a missing `param_dtype` is "<f4".
+SCHEMA_VERSION = 3
+READABLE_VERSIONS = (1, 2, 3)
 #: What an env's actions are: float32 vectors in [-1, 1] (continuous) or int64 indices in [0, n) (discrete).
 ACTION_KINDS = ("continuous", "discrete")
 ACTION_WIRE = {"continuous": "<f4", "discrete": "<i8"}
+#: How a set of weights' arrays travel (`--weights-dtype`); actors compute in float32 either way.
+WEIGHTS_WIRE = {"float32": "<f4", "float16": "<f2"}
 
 #: Largest episode message the buffer accepts by default (bytes). A 1000-step
 #: Humanoid episode is about 1.5 MB; 64 MB leaves room and still bounds memory.
@@ -46,6 +51,8 @@ MAX_BATCHES_PER_REQUEST = 64
 MAX_BATCH_SIZE = 65536
 MAX_ROWS_PER_REQUEST = 65536
 MAX_REPLY_BYTES = 64 * 1024 * 1024
+
+log = logging.getLogger("protocol")
 
 _RUN_NAME = re.compile(r"^[A-Za-z0-9_.-]{1,64}$")
 
@@ -416,12 +423,22 @@ class Weights:
     incarnation: int = 0
     #: the policy's kind: a tanh-Gaussian ("continuous") or a categorical one over action indices ("discrete")
     action_kind: str = "continuous"
+    #: how the arrays travel (a key of WEIGHTS_WIRE); decoded weights are float32 whatever they travelled as
+    wire_dtype: str = "float32"
 
     def supersedes(self, current: "Weights | None") -> bool:
         """The actors' rule: take weights that are newer than `current` or come from another learner incarnation."""
         return current is None or self.incarnation != current.incarnation or self.version > current.version
 
     def encode(self) -> bytes:
+        wire = WEIGHTS_WIRE[self.wire_dtype]
+        with np.errstate(over="ignore"):  # checked just below
+            params = {k: np.asarray(a, dtype=wire) for k, a in self.params.items()}
+        if wire != "<f4" and not all(np.isfinite(a).all() for a in params.values()):
+            # a weight beyond float16's range (65,504) would reach the actors as inf, and they would refuse
+            # every publication: this one travels as float32 instead, and says so in its `param_dtype`
+            log.warning("weights version %d: a weight is beyond float16's range; sent as float32", self.version)
+            wire, params = "<f4", {k: np.asarray(a, dtype="<f4") for k, a in self.params.items()}
         return _pack({
             "kind": "weights",
             "action_kind": self.action_kind,
@@ -429,7 +446,8 @@ class Weights:
             "incarnation": int(self.incarnation),
             "sent_at": float(self.sent_at),
             "arch": dict(self.arch),
-            "params": {k: pack_array(np.asarray(a, dtype="<f4")) for k, a in self.params.items()},
+            "param_dtype": wire,
+            "params": {k: pack_array(a) for k, a in params.items()},
         })
 
     @classmethod
@@ -438,13 +456,17 @@ class Weights:
         version = _int(msg, "version", 0)  # actors stamp it on every episode: int64, as the buffer stores it
         arch = _get(msg, "arch", dict)
         raw = _get(msg, "params", dict)
-        params = {str(k): unpack_array(v, f"params.{k}", "<f4") for k, v in raw.items()}
+        wire = msg.get("param_dtype", "<f4")  # absent before version 3
+        if wire not in WEIGHTS_WIRE.values():
+            raise ProtocolError("bad_dtype", f"param_dtype is {wire!r}, expected one of {list(WEIGHTS_WIRE.values())}")
+        params = {str(k): unpack_array(v, f"params.{k}", wire).astype(np.float32, copy=False) for k, v in raw.items()}
         for k, a in params.items():
             if not np.isfinite(a).all():
                 raise ProtocolError("non_finite", f"weights {k!r} contain NaN or infinite values")
         sent_at = _finite(msg, "sent_at", default=0.0)  # actors report latencies from it: finite
         incarnation = _int(msg, "incarnation", 0, default=0)  # absent from weights of learners before 0.2
-        return cls(version, params, arch, sent_at, incarnation, _action_kind(msg))
+        dtype = next(name for name, w in WEIGHTS_WIRE.items() if w == wire)
+        return cls(version, params, arch, sent_at, incarnation, _action_kind(msg), dtype)
 
 
 def new_incarnation() -> int:

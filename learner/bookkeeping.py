@@ -148,7 +148,9 @@ class Bookkeeping:
         return self.update.weights(self.policy_version, self.incarnation, time.time())
 
     def publish_weights(self) -> None:
-        self.weights_server.publish(self.weights())
+        weights = self.weights()
+        weights.wire_dtype = self.cfg.weights_dtype  # how they travel; the learner evaluates its own float32 ones
+        self.weights_server.publish(weights)
 
     def start(self) -> None:
         """Publish the first weights and, on a fresh start, evaluate the untrained policy (every curve's baseline)."""
