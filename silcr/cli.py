@@ -100,7 +100,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
         if role == "bench":
             p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "scale", "peer", "all"],
                            help="which benchmark; `all` runs every one but scale (which starts up to 128 actors) "
-                                "and peer (Stable-Baselines3 beside silcr train, about 20 minutes per round)")
+                                "and peer (Stable-Baselines3 beside silcr train, about 40 minutes for 3 rounds on 2 cores)")
             p.add_argument("--counts", default="", help="scale: actor counts, comma-separated (default: 8,32,128; "
                                                         "--quick: 2,4)")
             p.add_argument("--envs-per-actor", type=int, default=1, help="scale: envs in each actor process (default: 1)")
