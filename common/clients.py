@@ -474,24 +474,72 @@ class ZenohWeightsClient(WeightsClient[PolicyT]):
 
 
 class WeightsServer:
-    """The learner's side: `publish(weights)` reaches every actor."""
+    """The learner's side: `publish(weights)` reaches every actor (`final`: the run's last, sent whatever
+    the pacing); `poll()` sends a publication the pacing held back once it is due."""
 
-    def publish(self, weights: P.Weights) -> None:
+    def publish(self, weights: P.Weights, final: bool = False) -> None:
         raise NotImplementedError
+
+    def poll(self) -> None:
+        pass
 
     def stats(self) -> dict:
         return {}
 
 
-class ZenohWeightsServer(WeightsServer):
-    """Publishes with BLOCK congestion control and high priority, and answers queries for the latest
-    weights (late-joining actors ask at start)."""
+class FanoutPacer:
+    """Keeps the weights' fan-out (bytes x actors per second) within a budget.
 
-    def __init__(self, session: zenoh.Session, keys: P.Keys) -> None:
+    Each publication goes to every actor, so its cost is its size times the actors alive. After
+    sending one, the next may go `actors x size / budget` seconds later; what the learner publishes
+    before then waits, and a newer set replaces a waiting one (the actors keep only the newest anyway).
+    A budget of 0 sends everything at once.
+    """
+
+    def __init__(self, budget_bytes_per_s: float, actors: Callable[[], int],
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.budget = budget_bytes_per_s
+        self._actors, self._clock = actors, clock
+        self._next_at = float("-inf")
+        self.waiting: bytes | None = None
+        self.held = 0  # publications that waited for the budget
+        self.replaced = 0  # waiting publications a newer one replaced before they went out
+
+    def offer(self, payload: bytes, final: bool = False) -> bytes | None:
+        """The payload to send now, or None if it must wait (`due()` hands it over later)."""
+        if final or self.budget <= 0 or self._clock() >= self._next_at:
+            self.waiting = None
+            return self._sent(payload)
+        self.held += 1
+        self.replaced += self.waiting is not None
+        self.waiting = payload
+        return None
+
+    def due(self) -> bytes | None:
+        """The waiting payload once the budget allows it."""
+        if self.waiting is None or self._clock() < self._next_at:
+            return None
+        payload, self.waiting = self.waiting, None
+        return self._sent(payload)
+
+    def _sent(self, payload: bytes) -> bytes:
+        if self.budget > 0:
+            self._next_at = self._clock() + max(1, self._actors()) * len(payload) / self.budget
+        return payload
+
+
+class ZenohWeightsServer(WeightsServer):
+    """Publishes with BLOCK congestion control and high priority, paced by `FanoutPacer` to a budget of
+    bytes per second across all actors, and answers queries for the latest weights (late-joining actors
+    ask at start; a query always gets the newest, held back or not)."""
+
+    def __init__(self, session: zenoh.Session, keys: P.Keys, fanout_budget_bytes_per_s: float = 0.0) -> None:
         self._key = keys.weights
         self._latest = b""
         self._lock = threading.Lock()
         self.published = 0
+        self.actors = Presence.actors(session, keys) if fanout_budget_bytes_per_s > 0 else None
+        self.pacer = FanoutPacer(fanout_budget_bytes_per_s, lambda: len(self.actors) if self.actors else 1)
         self._pub = session.declare_publisher(keys.weights, congestion_control=zenoh.CongestionControl.BLOCK,
                                               priority=zenoh.Priority.DATA_HIGH)
         session.declare_queryable(keys.weights, self._answer)
@@ -503,16 +551,26 @@ class ZenohWeightsServer(WeightsServer):
             if latest:
                 query.reply(self._key, latest)
 
-    def publish(self, weights: P.Weights) -> None:
+    def publish(self, weights: P.Weights, final: bool = False) -> None:
         payload = weights.encode()
         with self._lock:
             self._latest = payload
-        self._pub.put(payload)
-        self.published += 1
+        self._send(self.pacer.offer(payload, final))
+
+    def poll(self) -> None:
+        self._send(self.pacer.due())
+
+    def _send(self, payload: bytes | None) -> None:
+        if payload is not None:
+            self._pub.put(payload)
+            self.published += 1
 
     def stats(self) -> dict:
-        """What goes out: the router sends each publication to every actor (`weights_bytes` x actors)."""
-        return {"weights_published": self.published, "weights_bytes": len(self._latest)}
+        """What goes out: each publication reaches every actor (`weights_bytes` x actors), paced to the budget."""
+        return {"weights_published": self.published, "weights_bytes": len(self._latest),
+                "weights_held": self.pacer.held, "weights_replaced": self.pacer.replaced,
+                "weights_fanout_budget_mb_s": self.pacer.budget / 1e6,
+                "weights_actors": len(self.actors) if self.actors is not None else None}
 
 
 class InProcessWeights(WeightsServer):
@@ -521,7 +579,7 @@ class InProcessWeights(WeightsServer):
     def __init__(self) -> None:
         self.latest: P.Weights | None = None
 
-    def publish(self, weights: P.Weights) -> None:
+    def publish(self, weights: P.Weights, final: bool = False) -> None:
         # the actors act with what the wire would have given them (float16 weights rounded)
         self.latest = weights if weights.wire_dtype == "float32" else P.Weights.decode(weights.encode())
 

@@ -99,6 +99,10 @@ class Config:
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
     total_steps: int = _opt(2_000_000, {"train", "learner"}, "environment-step budget of the run")
     weights_interval: int = _opt(50, {"train", "learner"}, "publish policy weights every N updates")
+    weights_fanout_mb_s: float = _opt(100.0, {"train", "learner"}, "budget of the weights' traffic to all actors "
+                                      "together, MB/s: a publication may follow the last after actors x its size / "
+                                      "budget seconds, and a newer one replaces one that waits (about a 1 Gb/s link; "
+                                      "0: no pacing; docs/scaling.md)")
     weights_dtype: str = _opt("float32", {"train", "learner"}, "how policy weights travel to the actors: float32, or "
                               "float16 (half the bytes of every publication to every actor; the actors' actions stay "
                               "within 0.01 of float32's: docs/protocol.md)", choices=tuple(WEIGHTS_WIRE))
@@ -320,7 +324,7 @@ def validate(cfg: Config, role: str) -> None:
     for name in ("hidden", "disc_hidden"):
         if not getattr(cfg, name) or any(h < 1 for h in getattr(cfg, name)):
             raise ConfigError(option_name(name), f"needs one or more positive layer sizes, got {getattr(cfg, name)}")
-    for name in ("gasil_alpha", "disc_grad_penalty"):
+    for name in ("gasil_alpha", "disc_grad_penalty", "weights_fanout_mb_s"):
         if not getattr(cfg, name) >= 0:
             raise ConfigError(option_name(name), f"must be >= 0, got {getattr(cfg, name)}")
     if cfg.buffer_checkpoint_interval < 0:

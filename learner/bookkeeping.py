@@ -147,10 +147,10 @@ class Bookkeeping:
     def weights(self) -> P.Weights:
         return self.update.weights(self.policy_version, self.incarnation, time.time())
 
-    def publish_weights(self) -> None:
+    def publish_weights(self, final: bool = False) -> None:
         weights = self.weights()
         weights.wire_dtype = self.cfg.weights_dtype  # how they travel; the learner evaluates its own float32 ones
-        self.weights_server.publish(weights)
+        self.weights_server.publish(weights, final=final)
 
     def start(self) -> None:
         """Publish the first weights and, on a fresh start, evaluate the untrained policy (every curve's baseline)."""
@@ -160,7 +160,8 @@ class Bookkeeping:
             self.next_eval = self.cfg.eval_interval
 
     def poll(self) -> None:
-        """Evaluate when the environment-step schedule says so."""
+        """Send weights the fan-out budget held back, and evaluate when the environment-step schedule says so."""
+        self.weights_server.poll()
         if self.env_steps >= self.next_eval:
             self.evaluate()
             self.next_eval = (self.env_steps // self.cfg.eval_interval + 1) * self.cfg.eval_interval
@@ -176,7 +177,7 @@ class Bookkeeping:
         """Last weights and evaluation if the run finished, a checkpoint either way, then close the records."""
         if finished:
             self.policy_version += 1
-            self.publish_weights()
+            self.publish_weights(final=True)
             if self.updates != self.last_eval_updates:  # not the policy the schedule just evaluated
                 self.evaluate()
             log.info("finished: %d env steps, %d updates, last eval return %s", self.env_steps, self.updates,

@@ -28,7 +28,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
     with role_session(cfg, stop, "learner") as role:
         shutdown = Shutdown(role.session, role.keys)
         try:
-            lrn = Learner(cfg, role.spec, ZenohWeightsServer(role.session, role.keys))
+            lrn = Learner(cfg, role.spec, ZenohWeightsServer(role.session, role.keys, cfg.weights_fanout_mb_s * 1e6))
         except CheckpointError as e:
             log.error("cannot start: %s", e)
             return EXIT_CANNOT_START

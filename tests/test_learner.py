@@ -23,8 +23,8 @@ class Recorder(InProcessWeights):
         super().__init__()
         self.versions: list[int] = []
 
-    def publish(self, weights: P.Weights) -> None:
-        super().publish(weights)
+    def publish(self, weights: P.Weights, final: bool = False) -> None:
+        super().publish(weights, final)
         self.versions.append(weights.version)
 
 

@@ -108,8 +108,10 @@ def test_weights_of_version_2_are_read_and_a_bad_param_dtype_is_refused():
 
 
 @pytest.mark.slow
-def test_a_run_with_float16_weights_reaches_its_actors(tmp_path):
-    """Over Zenoh: the learner publishes half-size weights, the actors take them (none refused) and act on them."""
+def test_a_run_with_float16_weights_and_a_fanout_budget_reaches_its_actors(tmp_path):
+    """Over Zenoh: the learner publishes half-size weights, the actors take them (none refused) and act on them.
+    The same run checks the fan-out budget (tests/test_weights_fanout.py has its logic): at 0.5 MB/s for two
+    actors the learner holds publications back, the traffic stays within the budget, and weights still flow."""
     procs = Processes(tmp_path)
     port, run = free_port(), "f16"
     keys = P.Keys(run)
@@ -117,16 +119,22 @@ def test_a_run_with_float16_weights_reaches_its_actors(tmp_path):
                         f"tcp/127.0.0.1:{port}", "--env", "InvertedPendulum-v5", "--hidden", "256", "256",
                         "--learning-starts", "500", "--batch-size", "64", "--eval-episodes", "1", "--stats-interval", "0.3",
                         "--total-steps", "3000", "--spi-tolerance", "200", "--actors", "2", "--weights-interval", "20",
-                        "--weights-dtype", "float16")
+                        "--weights-dtype", "float16", "--weights-fanout-mb-s", "0.5")
     try:
         session = client_when_up(port)  # kept: a session nothing refers to is closed, and its subscriber with it
         stats = LatestJson(session, keys.stats_all)
         wait_for(lambda: all((stats.get(keys.stats_actor(i)) or {}).get("policy_version", 0) > 2 for i in (0, 1)), 240,
                  "the actors to take published weights")
+        first = stats.get(keys.stats_learner)
+        wait_for(lambda: stats.get(keys.stats_learner)["weights_held"] > 10, 120, "the budget to hold publications back")
         learner = stats.get(keys.stats_learner)
         spec = EnvSpec.of("InvertedPendulum-v5")
         full = len(_weights(spec, [256, 256]).encode())
         assert learner["weights_bytes"] / full < 0.52, (learner["weights_bytes"], full)
+        assert learner["weights_actors"] == 2 and learner["weights_fanout_budget_mb_s"] == 0.5
+        # between two stats messages, publications x size x actors fit the budget (plus the one in flight)
+        sent = (learner["weights_published"] - first["weights_published"]) * learner["weights_bytes"] * 2
+        assert sent <= 0.5e6 * (learner["time"] - first["time"]) + learner["weights_bytes"] * 2, (first, learner)
         for i in (0, 1):
             assert stats.get(keys.stats_actor(i))["weights_rejected"] == 0
         session.close()
