@@ -106,7 +106,7 @@ class Config:
     weights_dtype: str = _opt("float32", {"train", "learner"}, "how policy weights travel to the actors: float32, or "
                               "float16 (half the bytes of every publication to every actor; the actors' actions stay "
                               "within 0.01 of float32's: docs/protocol.md)", choices=tuple(WEIGHTS_WIRE))
-    eval_interval: int = _opt(5_000, {"train", "learner"}, "evaluate the deterministic policy every N environment steps")
+    eval_interval: int = _opt(5_000, {"train", "learner"}, "evaluate the policy every N environment steps (deterministic unless --eval-stochastic)")
     eval_episodes: int = _opt(5, {"train", "learner"}, "episodes per evaluation")
     eval_stochastic: bool = _opt(False, {"train", "learner"}, "evaluate by sampling the policy's actions (seeded) instead "
                                  "of its deterministic ones: a memoryless policy in a partial view, such as MiniGrid's, "

@@ -36,7 +36,7 @@ def rollout(env, policy: Policy, spec: EnvSpec, seed: int, deterministic: bool =
 
 
 class Evaluation(NamedTuple):
-    """The deterministic policy over a few episodes: dense return (mean, std), mean length, and the share of
+    """A policy over a few episodes: dense return (mean, std), mean length, and the share of
     episodes that reached the task's goal (`None` for a task without one: `EnvSpec.reached_goal`)."""
 
     mean: float
