@@ -246,12 +246,20 @@ def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: i
               file=sys.stderr, flush=True)
         for r in running:
             r.proc.send_signal(signal.SIGINT)
-        for r in running:
-            try:
-                r.proc.wait(60)
-            except subprocess.TimeoutExpired:
-                os.killpg(r.proc.pid, signal.SIGKILL)
+        try:
+            for r in running:
+                try:
+                    r.proc.wait(60)
+                except subprocess.TimeoutExpired:
+                    os.killpg(r.proc.pid, signal.SIGKILL)
+                    r.proc.wait()
+        except KeyboardInterrupt:  # a second Ctrl-C or kill: stop now (checkpoints are written whole or not at all)
+            print("silcr sweep: interrupted again; killing the cells now", file=sys.stderr, flush=True)
+            for r in running:
+                if r.proc.poll() is None:
+                    os.killpg(r.proc.pid, signal.SIGKILL)
                 r.proc.wait()
+        for r in running:
             r.log.close()
         return 130
     if failed:

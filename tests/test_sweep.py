@@ -7,6 +7,7 @@ import os
 import signal
 import subprocess
 import sys
+import time
 
 import pytest
 
@@ -163,3 +164,28 @@ def test_invalid_cells_are_reported_together_and_a_dry_run_still_shows_the_plan(
     r = sweep()
     assert r.returncode == 2 and len(r.stderr.strip().splitlines()) == 2
     assert not (tmp_path / "runs").exists()  # nothing started
+
+
+def test_a_second_interrupt_kills_the_cells_at_once_and_leaves_nothing_behind(tmp_path):
+    """Ctrl-C twice (or `kill` twice): the sweep stops its cells without waiting for them, prints one line,
+    exits 130 with no traceback, and no process of theirs is left; the cell stays resumable."""
+    exp = tmp_path / "tiny.toml"
+    exp.write_text(SMALL_EXPERIMENT)
+    runs = tmp_path / "runs"
+    cell_dir = runs / "silcr_InvertedPendulum-v5_s0"
+    procs = Processes(tmp_path)
+    try:
+        sweep = procs.start("sweep", "sweep", str(exp), "--seeds", "0", "--runs-dir", str(runs), "--port-base",
+                            str(free_port()), new_session=True)
+        ckpt = cell_dir / "checkpoints" / "learner.pt"
+        wait_for(lambda: ckpt.exists(), 240, "the cell to write a learner checkpoint")
+        os.killpg(sweep.pid, signal.SIGINT)
+        time.sleep(0.3)
+        sweep.send_signal(signal.SIGTERM)  # the second, while the cells are stopping
+        assert sweep.wait(60) == 130, procs.log("sweep")
+    finally:
+        procs.stop_all()
+    assert procs.orphans == []
+    log = procs.log("sweep")
+    assert "Traceback" not in log and ("interrupted again" in log or "interrupted;" in log), log
+    assert cell_state(cell_dir) == "partial"
