@@ -8,7 +8,9 @@ curve: their values are interpolated onto a common grid of environment steps
 A label is the algorithm (with SAC's reward and a non-default M), plus every
 setting that differs between the runs plotted together (`tau=0.005`,
 `expert_admission=recent`, ...), so that runs of different settings are never
-averaged into one curve. `--metric` plots another progress.csv column
+averaged into one curve. Cells of one `silcr sweep` (directories named
+`<variant>_<task>_s<seed>`) are labelled by their experiment's variant names
+instead, when each name stands for one set of settings. `--metric` plots another progress.csv column
 (`expert_min_return`: D_E's lowest return; `q_max`: the critics' largest Q).
 """
 
@@ -87,6 +89,30 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     past = [float(r["env_steps"]) for r in all_rows if (r.get("q_bound_exceeded") or "0") not in ("", "0")]
     return RunCurve(path, cfg.get("env", "?"), label, int(cfg.get("seed", 0)), steps, values, cfg,
                     "q_bound_exceeded" in all_rows[0], past[0] if past else None)
+
+
+def sweep_variant(run: RunCurve) -> str | None:
+    """The experiment variant of a `silcr sweep` cell, from its directory's name `<variant>_<task>_s<seed>`."""
+    suffix = f"_{run.env.replace('/', '-')}_s{run.seed}"
+    name = run.path.name
+    return name[: -len(suffix)] if name.endswith(suffix) and len(name) > len(suffix) else None
+
+
+def label_by_variant(runs: list[RunCurve]) -> bool:
+    """Label sweep cells by their experiment's variant names (`silcr`, `silcr-recent`, `sac`, ...) when every
+    run is one and each variant's runs share their settings; say whether it did (else `distinguish` labels)."""
+    variants = [sweep_variant(r) for r in runs]
+    if not runs or None in variants:
+        return False
+    settings: dict[str, set[str]] = defaultdict(set)
+    for r, v in zip(runs, variants):
+        settings[v].add(repr(sorted((k, r.config.get(k)) for k in set(r.config) - NOT_A_SETTING - {"env"}
+                                    | {"algo", "reward", "expert_capacity"})))
+    if any(len(s) > 1 for s in settings.values()):  # one name, two settings: cells of different experiments
+        return False
+    for r, v in zip(runs, variants):
+        r.algo = v
+    return True
 
 
 def _applies(key: str, run: RunCurve) -> bool:
@@ -194,7 +220,9 @@ def summary_markdown(runs: list[RunCurve], metric: str = "return") -> str:
 def plot_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     """`silcr plot RUN_DIR... -o fig.png [--table t.md]`."""
     try:
-        runs = distinguish([load_run(Path(r), args.metric) for r in args.runs])
+        runs = [load_run(Path(r), args.metric) for r in args.runs]
+        if not label_by_variant(runs):
+            runs = distinguish(runs)
     except ValueError as e:
         parser.error(str(e))
     out = Path(args.out)

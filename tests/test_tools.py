@@ -216,3 +216,35 @@ def test_the_closing_line_gives_the_final_evaluation_with_digits_that_matter(tmp
     assert "final evaluation 0.000 at 7150 env steps" in done_message(tmp_path)  # the last row, not the best
     assert format_return(0.9549999) == "0.955" and format_return(1234.56) == "1234.6"
     assert done_message(tmp_path / "missing").startswith("silcr train: done. progress:")
+
+
+def test_sweep_cells_are_labelled_by_their_variants_unless_one_name_covers_two_settings(tmp_path):
+    from silcr.common.config import Config
+    from silcr.plot import distinguish, label_by_variant
+
+    def cell(root, variant, seed, **settings):
+        d = root / f"{variant}_MiniGrid-Empty-8x8-v0_s{seed}"
+        d.mkdir(parents=True)
+        Config(run=d.name, env="MiniGrid-Empty-8x8-v0", seed=seed, **settings).save(d / "config.toml")
+        (d / "progress.csv").write_text("env_steps,eval_return\n0,0\n1000,1\n")
+        return d
+
+    study = [cell(tmp_path / "a", "silcr", s, absorbing_terminal=True) for s in (0, 1)] + [
+        cell(tmp_path / "a", "silcr-recent", 0, absorbing_terminal=True, expert_admission="recent"),
+        cell(tmp_path / "a", "sac", 0, algo="sac")]
+    runs = [load_run(d) for d in study]
+    assert label_by_variant(runs) and [r.algo for r in runs] == ["silcr", "silcr", "silcr-recent", "sac"]
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, study), "-o", str(tmp_path / "f.png")],
+                       capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode == 0 and "| silcr-recent | 1 |" in r.stdout, r.stdout + r.stderr
+    # a cell of another experiment whose variant has the same name but other settings: back to the settings
+    other = cell(tmp_path / "b", "silcr", 0, absorbing_terminal=False)
+    runs = [load_run(d) for d in [*study[:2], other]]
+    assert not label_by_variant(runs)
+    assert {r.algo for r in distinguish(runs)} == {"silcr absorbing_terminal=True", "silcr absorbing_terminal=False"}
+    # and a run that is not a sweep cell
+    plain = tmp_path / "mine"
+    plain.mkdir()
+    Config(run="mine", env="MiniGrid-Empty-8x8-v0").save(plain / "config.toml")
+    (plain / "progress.csv").write_text("env_steps,eval_return\n0,0\n")
+    assert not label_by_variant([load_run(study[0]), load_run(plain)])
