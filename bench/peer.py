@@ -6,8 +6,8 @@ learning rate, tau, gamma, warm-up and budget, evaluation off, each with its own
 otherwise (threads included, as a user would run them):
 
 - `sb3`: Stable-Baselines3's `SAC("MlpPolicy", ...)` (the optional extra `pip install -e ".[bench]"`);
-- `silcr`: `silcr train` with its defaults (a buffer service, a learner and one actor over Zenoh);
-- `single`: `silcr train --single-process`.
+- `distributed`: `silcr train` with its defaults (a buffer service, a learner and one actor over Zenoh);
+- `single-process`: `silcr train --single-process`.
 
 They run alternated, round after round, so that each round exposes all three to the same
 background load, and the bench reports each silcr program's wall and CPU time (user + sys of the
@@ -29,11 +29,14 @@ from pathlib import Path
 from typing import Any
 
 from silcr.cli import command
+from silcr.common.algorithms import ALGORITHMS
 
 from .procs import free_port
 from .timing import print_table, write_json
 
-PROGRAMS = ("sb3", "silcr", "single")
+PROGRAMS = ("sb3", "distributed", "single-process")
+#: SB3's SAC is plain SAC: the registry's algorithm that learns from the env's reward and keeps no D_E.
+PLAIN_SAC = next(a.name for a in ALGORITHMS.values() if a.uses_env_reward and not a.keeps_expert)
 MISSING_SB3 = ("silcr bench peer: Stable-Baselines3 is not installed; install the bench extra "
                "(pip install -e \".[bench]\", or pip install stable-baselines3) and run it again")
 
@@ -54,7 +57,7 @@ class PeerConfig:
 
     def silcr_args(self, runs_dir: Path, run: str, single_process: bool) -> list[str]:
         """`silcr train` options: one update per env step after the warm-up (silcr's default), no evaluation."""
-        return ["train", "--run", run, "--runs-dir", str(runs_dir), "--env", self.env_id, "--algo", "sac",
+        return ["train", "--run", run, "--runs-dir", str(runs_dir), "--env", self.env_id, "--algo", PLAIN_SAC,
                 "--reward", "dense", "--hidden", *map(str, self.hidden), "--batch-size", str(self.batch_size),
                 "--lr", str(self.lr), "--tau", str(self.tau), "--gamma", str(self.gamma),
                 "--learning-starts", str(self.learning_starts), "--total-steps", str(self.total_steps),
@@ -112,7 +115,7 @@ def run_once(program: str, cfg: PeerConfig, timeout: float = 3600) -> dict[str, 
         import torch
 
         runs_dir = Path(tempfile.mkdtemp(prefix=f"silcr-bench-peer-{program}-"))
-        wall, cpu, _ = _timed(command(*cfg.silcr_args(runs_dir, "peer", program == "single")), timeout)
+        wall, cpu, _ = _timed(command(*cfg.silcr_args(runs_dir, "peer", program == "single-process")), timeout)
         counters = torch.load(runs_dir / "peer" / "checkpoints" / "learner.pt", map_location="cpu",
                               weights_only=True)["counters"]
         work = {"updates": int(counters["updates"]), "env_steps": int(counters["env_steps"])}
@@ -163,7 +166,7 @@ def run(out_dir: Path, quick: bool = False, rounds: int = 0) -> dict[str, Any]:
     rows = []
     for res in results:
         net = "x".join(map(str, res["config"]["hidden"]))
-        for program, label in (("silcr", "silcr train (defaults)"), ("single", "silcr train --single-process")):
+        for program, label in (("distributed", "silcr train (defaults)"), ("single-process", "silcr train --single-process")):
             for what in ("wall", "cpu"):
                 s = res["ratios"][f"{program}_{what}"]
                 rows.append([net, label, f"{what} / SB3's", s["min"], s["median"], s["max"]])

@@ -60,10 +60,10 @@ def test_the_quick_peer_bench_runs_all_three_programs_on_the_same_work(tmp_path)
     assert "silcr against Stable-Baselines3" in r.stdout
     result = json.loads((tmp_path / "peer.json").read_text())["results"][0]
     runs = {x["program"]: x for x in result["runs"]}
-    assert set(runs) == {"sb3", "silcr", "single"}
+    assert set(runs) == {"sb3", "distributed", "single-process"}
     # the same budget and, within a few (where each program stops its last step), the same updates
     assert all(x["env_steps"] >= 800 for x in runs.values()), runs
     assert max(x["updates"] for x in runs.values()) - min(x["updates"] for x in runs.values()) <= 6, runs
-    for key in ("silcr_wall", "silcr_cpu", "single_wall", "single_cpu"):
+    for key in ("distributed_wall", "distributed_cpu", "single-process_wall", "single-process_cpu"):
         s = result["ratios"][key]
         assert 0 < s["min"] <= s["median"] <= s["max"], result["ratios"]
