@@ -18,6 +18,7 @@ Each program reports the updates it made, so the table also shows that the work 
 from __future__ import annotations
 
 import json
+import os
 import resource
 import statistics
 import subprocess
@@ -72,8 +73,8 @@ class PeerConfig:
                 "policy_kwargs": {"net_arch": list(self.hidden)}, "verbose": 0}
 
 
-# Run in a plain interpreter: importing silcr would set its thread-pool defaults (silcr/__init__.py)
-# on the peer, which must run with its own.
+# Run in a plain interpreter, in the environment as it was before silcr set its thread-pool defaults
+# (silcr/__init__.py): the peer runs with its own, as a user would run it.
 SB3_SCRIPT = """
 import json, sys
 import gymnasium as gym
@@ -91,11 +92,24 @@ def sb3_available() -> bool:
     return importlib.util.find_spec("stable_baselines3") is not None
 
 
-def _timed(cmd: list[str], timeout: float) -> tuple[float, float, str]:
+def _peer_env() -> dict[str, str]:
+    """This process's environment without the thread-pool defaults silcr added (a value the user set stays)."""
+    from silcr import ENV_BEFORE_DEFAULTS
+
+    env = dict(os.environ)
+    for name, value in ENV_BEFORE_DEFAULTS.items():
+        if value is None:
+            env.pop(name, None)
+        else:
+            env[name] = value
+    return env
+
+
+def _timed(cmd: list[str], timeout: float, env: dict[str, str] | None = None) -> tuple[float, float, str]:
     """Wall and CPU seconds (user + sys of the process and every child it waited for) of one command, and its stdout."""
     before = resource.getrusage(resource.RUSAGE_CHILDREN)
     t0 = time.perf_counter()
-    r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout)
+    r = subprocess.run(cmd, capture_output=True, text=True, timeout=timeout, env=env)
     wall = time.perf_counter() - t0
     after = resource.getrusage(resource.RUSAGE_CHILDREN)
     if r.returncode != 0:
@@ -109,7 +123,7 @@ def run_once(program: str, cfg: PeerConfig, timeout: float = 3600) -> dict[str, 
     """One training run of `program`: its wall and CPU seconds and the work it did."""
     if program == "sb3":
         payload = json.dumps({"env_id": cfg.env_id, "total_steps": cfg.total_steps, "kwargs": cfg.sb3_kwargs()})
-        wall, cpu, out = _timed([sys.executable, "-c", SB3_SCRIPT, payload], timeout)
+        wall, cpu, out = _timed([sys.executable, "-c", SB3_SCRIPT, payload], timeout, env=_peer_env())
         work = json.loads(out.strip().splitlines()[-1])
     else:
         import torch

@@ -30,5 +30,9 @@ __version__ = "0.3.0"
 # Both are defaults: a value already in the environment wins. Every silcr module is
 # under this package, so library use (`import silcr.learner.sac`) gets them too,
 # unless numpy or torch was imported before it.
-os.environ.setdefault("OPENBLAS_NUM_THREADS", "1")
-os.environ.setdefault("OMP_WAIT_POLICY", "PASSIVE")
+THREAD_DEFAULTS = {"OPENBLAS_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
+#: The environment as it was before these defaults (None: unset), for programs that must run with their own
+#: (`silcr bench peer` runs Stable-Baselines3 as a user would).
+ENV_BEFORE_DEFAULTS = {name: os.environ.get(name) for name in THREAD_DEFAULTS}
+for _name, _value in THREAD_DEFAULTS.items():
+    os.environ.setdefault(_name, _value)

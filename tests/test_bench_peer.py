@@ -67,3 +67,18 @@ def test_the_quick_peer_bench_runs_all_three_programs_on_the_same_work(tmp_path)
     for key in ("distributed_wall", "distributed_cpu", "single-process_wall", "single-process_cpu"):
         s = result["ratios"][key]
         assert 0 < s["min"] <= s["median"] <= s["max"], result["ratios"]
+
+
+def test_the_peer_runs_without_silcrs_thread_pool_defaults_but_with_the_users(monkeypatch):
+    """SB3 must run as a user would: silcr's OMP_WAIT_POLICY=PASSIVE and one OpenBLAS thread are not its
+    defaults (and the first is what makes a 2-thread torch slower here), while what the user set stays."""
+    import os
+
+    import silcr
+    from silcr.bench.peer import _peer_env
+
+    assert os.environ["OMP_WAIT_POLICY"] == "PASSIVE" or silcr.ENV_BEFORE_DEFAULTS["OMP_WAIT_POLICY"] is not None
+    monkeypatch.setattr(silcr, "ENV_BEFORE_DEFAULTS", {"OMP_WAIT_POLICY": None, "OPENBLAS_NUM_THREADS": "3"})
+    env = _peer_env()
+    assert "OMP_WAIT_POLICY" not in env and env["OPENBLAS_NUM_THREADS"] == "3"
+    assert env["PATH"] == os.environ["PATH"]
