@@ -20,6 +20,7 @@ from __future__ import annotations
 import json
 import os
 import resource
+import shutil
 import statistics
 import subprocess
 import sys
@@ -132,6 +133,7 @@ def run_once(program: str, cfg: PeerConfig, timeout: float = 3600) -> dict[str, 
         wall, cpu, _ = _timed(command(*cfg.silcr_args(runs_dir, "peer", program == "single-process")), timeout)
         counters = torch.load(runs_dir / "peer" / "checkpoints" / "learner.pt", map_location="cpu",
                               weights_only=True)["counters"]
+        shutil.rmtree(runs_dir, ignore_errors=True)  # its checkpoints: tens of MB a run
         work = {"updates": int(counters["updates"]), "env_steps": int(counters["env_steps"])}
     return {"program": program, "wall_s": wall, "cpu_s": cpu, **work}
 
