@@ -144,25 +144,18 @@ def _spread(values: list[float]) -> dict[str, float]:
 
 def compare(cfg: PeerConfig, rounds: int) -> dict[str, Any]:
     """`rounds` rounds of the three programs in turn (the order rotates), and silcr's ratios to SB3 per round."""
-    runs: list[dict[str, Any]] = []
+    per_round: list[dict[str, dict[str, Any]]] = []  # each round's runs by program
     for r in range(rounds):
-        order = PROGRAMS[r % 3:] + PROGRAMS[:r % 3]
         got = {}
-        for program in order:
-            got[program] = run_once(program, cfg)
-            got[program]["round"] = r
+        for program in PROGRAMS[r % 3:] + PROGRAMS[:r % 3]:
+            got[program] = run_once(program, cfg) | {"round": r}
             print(f"  {'x'.join(map(str, cfg.hidden))} round {r + 1}/{rounds} {program}: "
                   f"{got[program]['wall_s']:.1f} s wall, {got[program]['cpu_s']:.1f} s CPU, "
                   f"{got[program]['updates']} updates", flush=True)
-        runs.extend(got[p] for p in PROGRAMS)
-    ratios = {}
-    for program in PROGRAMS[1:]:
-        for what in ("wall_s", "cpu_s"):
-            per_round = [next(x for x in runs if x["round"] == r and x["program"] == program)[what]
-                         / next(x for x in runs if x["round"] == r and x["program"] == "sb3")[what]
-                         for r in range(rounds)]
-            ratios[f"{program}_{what.removesuffix('_s')}"] = _spread(per_round)
-    return {"config": asdict(cfg), "runs": runs, "ratios": ratios}
+        per_round.append(got)
+    ratios = {f"{program}_{what.removesuffix('_s')}": _spread([got[program][what] / got["sb3"][what] for got in per_round])
+              for program in PROGRAMS[1:] for what in ("wall_s", "cpu_s")}
+    return {"config": asdict(cfg), "runs": [got[p] for got in per_round for p in PROGRAMS], "ratios": ratios}
 
 
 def run(out_dir: Path, quick: bool = False, rounds: int = 0) -> dict[str, Any]:

@@ -539,7 +539,7 @@ class ZenohWeightsServer(WeightsServer):
         self._lock = threading.Lock()
         self.published = 0
         self.actors = Presence.actors(session, keys) if fanout_budget_bytes_per_s > 0 else None
-        self.pacer = FanoutPacer(fanout_budget_bytes_per_s, lambda: len(self.actors) if self.actors else 1)
+        self.pacer = FanoutPacer(fanout_budget_bytes_per_s, lambda: len(self.actors) if self.actors is not None else 1)
         self._pub = session.declare_publisher(keys.weights, congestion_control=zenoh.CongestionControl.BLOCK,
                                               priority=zenoh.Priority.DATA_HIGH)
         session.declare_queryable(keys.weights, self._answer)
