@@ -26,6 +26,9 @@ from silcr.common.role_session import role_session
 from .policy import Policy, initial_weights, policy_for
 
 log = logging.getLogger("actor")
+# A paused actor wakes this often (unless the buffer lets it go on first) to take newer weights
+# and publish its stats.
+PAUSED_POLL_S = 0.25
 
 
 class _Rollout:
@@ -116,8 +119,10 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         while not stop.is_set():
             paused = writer.paused()
             if paused:
+                # Back at once when the buffer says so; otherwise awake every PAUSED_POLL_S
+                # to take newer weights and publish stats.
                 t0 = time.monotonic()
-                stop.wait(0.01)
+                writer.wait_unpaused(PAUSED_POLL_S)
                 paused_s += time.monotonic() - t0
             elif not actor.step():
                 break

@@ -100,3 +100,37 @@ def test_a_decoded_batch_trains_without_the_read_only_warning():
         t = reply.batch.map(lambda a: to_tensor(a, torch.device("cpu")))
     assert t.obs.data_ptr() == reply.batch.obs.ctypes.data  # the same memory: no copy
     assert t.obs.shape == (16, OBS)
+
+
+def test_a_paused_writer_sleeps_until_the_buffer_lets_it_go_on():
+    """Paused actors wait on the throttle notice instead of polling it (128 paced actors polling every
+    10 ms took the learner's cores); the wait ends with the notice, and a malformed one changes nothing."""
+    import threading
+    import time
+
+    from silcr.common.clients import Throttle, ZenohEpisodeWriter
+    from silcr.common.lifecycle import StopFlag
+    from silcr.common.zenoh_session import open_session, router_config, session_config
+    from tests.helpers import free_port, wait_for
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    keys = P.Keys("throttle-wait")
+    with open_session(router_config([endpoint])), \
+            open_session(session_config([endpoint], mode="client")) as actor_side, \
+            open_session(session_config([endpoint], mode="client")) as buffer_side:
+        writer = ZenohEpisodeWriter(actor_side, keys, StopFlag())
+        throttle = Throttle(buffer_side, keys)
+        assert writer.wait_unpaused(0.0)  # not paused before any notice
+        wait_for(lambda: throttle._pub.matching_status.matching, 20, "the actor's subscription")
+        throttle.send(True)
+        wait_for(writer.paused, 10, "the pause notice")
+        t0 = time.monotonic()
+        assert not writer.wait_unpaused(0.3)  # still paused: the wait runs its course
+        assert time.monotonic() - t0 >= 0.25
+        buffer_side.put(keys.control_throttle, b"\xc1garbage")
+        wait_for(lambda: writer.throttle_rejections, 10, "the malformed notice to be counted")
+        assert writer.paused()
+        threading.Timer(0.2, throttle.send, (False,)).start()
+        t0 = time.monotonic()
+        assert writer.wait_unpaused(20)
+        assert not writer.paused() and time.monotonic() - t0 < 10
