@@ -28,6 +28,10 @@ EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.exper
 TANH_LOG_PROB_FORMS = ("exact", "official")  # log(1 - tanh^2) in the policy's log-probability (learner.sac)
 DEVICES = ("auto", "cpu", "cuda")
 ZENOH_MODES = ("peer", "client")
+# Above this many actors, `silcr train` makes them Zenoh clients of its router: gossip links
+# every peer to every other, and 128 actors as peers on 2 cores spent minutes linking (load
+# average above 400) before the learner's first update (docs/scaling.md, "Links").
+PEER_ACTORS_MAX = 32
 
 ALL = frozenset({"train", "actor", "buffer", "learner"})
 SERVICE = frozenset({"train", "buffer", "learner"})
@@ -64,6 +68,10 @@ class Config:
     connect: list[str] = _opt([], ALL | {"monitor"}, "Zenoh endpoints to connect to (default: the local router)", nargs="+")
     listen: list[str] = _opt([], ALL, "Zenoh endpoints this process listens on (default tcp/127.0.0.1:0: loopback only)", nargs="+")
     zenoh_mode: str = _opt("peer", ALL | {"monitor"}, "peer (direct links between components) or client (everything through the router)", choices=ZENOH_MODES)
+    actor_zenoh_mode: str = _opt("auto", {"train"}, "how the actors `silcr train` starts join the run: peer (gossip "
+                                 "links each to every other component and actor), client (one link each, to the "
+                                 f"router, which relays), or auto: peer up to {PEER_ACTORS_MAX} actors, client above "
+                                 "(docs/scaling.md)", choices=("auto", *ZENOH_MODES))
     zenoh_config: str = _opt("", ALL | {"monitor"}, "Zenoh JSON5 config file applied before the options above")
     zenoh_listen: str = _opt("tcp/127.0.0.1:7447", {"train"}, "endpoint of the router that `silcr train` starts")
     # --- buffer service --------------------------------------------------------
@@ -281,6 +289,15 @@ def resolve(args: argparse.Namespace, role: str, environ: Mapping[str, str] | No
         cfg.run = f"{cfg.env.replace('/', '_')}-{cfg.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
     validate(cfg, role)
     return cfg
+
+
+def actor_zenoh_mode(cfg: Config) -> str:
+    """The Zenoh mode of the actors `silcr train` starts (--actor-zenoh-mode, resolved)."""
+    if cfg.zenoh_mode == "client":
+        return "client"  # everything through the router already
+    if cfg.actor_zenoh_mode != "auto":
+        return cfg.actor_zenoh_mode
+    return "peer" if cfg.actors <= PEER_ACTORS_MAX else "client"
 
 
 def validate(cfg: Config, role: str) -> None:

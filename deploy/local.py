@@ -26,7 +26,7 @@ from typing import Any
 from silcr.common import protocol as P
 from silcr.common import seeds
 from silcr.common.clients import Shutdown
-from silcr.common.config import Config
+from silcr.common.config import Config, actor_zenoh_mode
 from silcr.common.lifecycle import EXIT_CANNOT_START, StopFlag, setup_logging
 from silcr.common.zenoh_session import open_session, session_config
 from silcr.deploy.console import TrainingDisplay, done_message
@@ -178,9 +178,14 @@ def run_train(cfg: Config) -> int:
                 if cfg.resume and (failed := _wait_started(run, role, stats)):
                     print(f"silcr train: error: {failed}", file=sys.stderr)
                     return 2
+            actor_mode = actor_zenoh_mode(cfg)
+            if actor_mode != cfg.zenoh_mode:
+                print(f"silcr train: the {cfg.actors} actors join as Zenoh {actor_mode}s of the router "
+                      f"(--actor-zenoh-mode {cfg.actor_zenoh_mode})")
             for i, name in enumerate(actor_names):
                 acfg = Config(**child_cfg.to_dict())
                 acfg.actor_id = i
+                acfg.zenoh_mode = actor_mode
                 run.start("actor", acfg, name)
             code = _watch(run, cfg, stats)
             if code == 0:

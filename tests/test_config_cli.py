@@ -151,3 +151,15 @@ def test_output_cut_short_by_a_pipe_ends_quietly():
     r = subprocess.run(f"{sys.executable} -m silcr.cli sweep experiments/paper.toml --seeds 0-999 --dry-run | head -1",
                        shell=True, capture_output=True, text=True, timeout=120, cwd=REPO)
     assert r.stdout.startswith("silcr sweep paper: 30000 cells") and r.stderr == "", r.stderr
+
+
+def test_many_actors_join_as_clients_of_the_router():
+    """`silcr train` makes its actors Zenoh clients above PEER_ACTORS_MAX: 128 peers meshed by gossip
+    stalled a 2-core machine (docs/scaling.md)."""
+    from silcr.common.config import PEER_ACTORS_MAX, actor_zenoh_mode
+
+    assert actor_zenoh_mode(_resolve(["--actors", str(PEER_ACTORS_MAX)])) == "peer"
+    assert actor_zenoh_mode(_resolve(["--actors", str(PEER_ACTORS_MAX + 1)])) == "client"
+    assert actor_zenoh_mode(_resolve(["--actors", "128", "--actor-zenoh-mode", "peer"])) == "peer"
+    assert actor_zenoh_mode(_resolve(["--actors", "2", "--actor-zenoh-mode", "client"])) == "client"
+    assert actor_zenoh_mode(_resolve(["--actors", "2", "--zenoh-mode", "client"])) == "client"
