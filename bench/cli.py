@@ -6,13 +6,15 @@ from pathlib import Path
 
 
 def run_bench(which: str, out_dir: Path, device: str, quick: bool, counts: list[int] | None = None,
-              envs_per_actor: int = 1, seconds: float = 0.0, rounds: int = 0) -> int:
+              envs_per_actor: int = 1, seconds: float = 0.0, rounds: int = 0, paced: bool = False,
+              train_args: list[str] = (), tag: str = "", hosts: int = 0) -> int:
     from . import actor, buffer, e2e, learner, peer, scale
 
     if which == "peer":
         peer.run(out_dir, quick, rounds)
     if which == "scale":
-        scale.run(out_dir, quick, counts or None, envs_per_actor, seconds=seconds or None)
+        scale.run(out_dir, quick, counts or None, envs_per_actor, seconds=seconds or None, paced=paced,
+                  train_args=train_args, tag=tag, hosts=hosts)
 
     if which in ("learner", "all"):
         learner.run(out_dir, "cpu", quick)

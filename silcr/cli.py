@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import argparse
 import os
+import re
+import shlex
 import sys
 from typing import TYPE_CHECKING
 
@@ -98,7 +100,7 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--port-base", type=int, default=17500, help="first router port; cell i uses port-base + i (default: 17500)")
             continue
         if role == "bench":
-            p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "scale", "peer", "all"],
+            p.add_argument("which", nargs="?", default="all", choices=["learner", "buffer", "actor", "e2e", "scale", "model", "peer", "all"],
                            help="which benchmark; `all` runs every one but scale (which starts up to 128 actors) "
                                 "and peer (Stable-Baselines3 beside silcr train, about 40 minutes for 3 rounds on 2 cores)")
             p.add_argument("--counts", default="", help="scale: actor counts, comma-separated (default: 8,32,128; "
@@ -106,6 +108,20 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--envs-per-actor", type=int, default=1, help="scale: envs in each actor process (default: 1)")
             p.add_argument("--seconds", type=float, default=0.0, help="scale: the measurement window per count "
                                                                        "(default: 60; --quick: 10)")
+            p.add_argument("--hosts", type=int, default=0, help="scale: run the actors on this many network-"
+                           "namespace hosts (needs root), each count being the actors per host, each host with a "
+                           "Zenoh router of its own; implies --paced (default: 0, all on this host)")
+            p.add_argument("--paced", action="store_true", help="scale: actors at the learner's pace, as in a real "
+                           "run (default: unthrottled, the transport's load at that many actors)")
+            p.add_argument("--train-args", default="", help="scale: more `silcr train` options for every count, "
+                           "quoted, e.g. --train-args='--weights-dtype float16'")
+            p.add_argument("--tag", default="", help="scale: names the records scale-TAG.json and scale-TAG.png "
+                           "(default: scale.json)")
+            p.add_argument("--records", default="results/bench-scale/scale-paced-after.json",
+                           help="model: the `bench scale --paced` records to calibrate on and check against "
+                                "(default: results/bench-scale/scale-paced-after.json)")
+            p.add_argument("--updates-per-s", type=float, default=230.0, help="model: the learner's update "
+                           "rate to predict 1,000 and 10,000 actors at (default: 230, 256-256 on one core here)")
             p.add_argument("--rounds", type=int, default=0, help="peer: rounds of the three programs (default: 3; "
                                                                   "--quick: 1)")
             p.add_argument("--out", default="bench-results", help="directory for the JSON results (default: bench-results)")
@@ -270,6 +286,25 @@ def _main(argv: list[str] | None) -> int:
             subs[role].error(f"--counts: {args.counts!r} is not a comma-separated list of actor counts")
         if any(c < 1 for c in counts) or args.envs_per_actor < 1 or args.seconds < 0 or args.rounds < 0:
             subs[role].error("--counts, --envs-per-actor, --seconds and --rounds must be positive")
+        if not 0 <= args.hosts <= 200:
+            subs[role].error(f"--hosts: must be 0 to 200, got {args.hosts}")
+        if args.hosts and args.envs_per_actor != 1:
+            subs[role].error("--hosts runs one env per actor; leave --envs-per-actor out")
+        try:
+            train_args = shlex.split(args.train_args)
+        except ValueError as e:
+            subs[role].error(f"--train-args: {e}")
+        if args.tag and not re.fullmatch(r"[A-Za-z0-9_.-]+", args.tag):
+            subs[role].error(f"--tag: {args.tag!r} may hold only letters, digits, '_', '.' and '-'")
+        if args.which == "model":
+            from silcr.bench.scale_model import RecordsError, run as run_model
+
+            try:
+                run_model(Path(args.records), Path(args.out), args.updates_per_s)
+            except RecordsError as e:
+                print(f"silcr bench model: error: {e}", file=sys.stderr)
+                return 2
+            return 0
         if args.which == "peer":
             from silcr.bench.peer import MISSING_SB3, sb3_available
 
@@ -277,7 +312,7 @@ def _main(argv: list[str] | None) -> int:
                 print(MISSING_SB3, file=sys.stderr)
                 return 2
         return run_bench(args.which, Path(args.out), args.device, args.quick, counts, args.envs_per_actor,
-                         args.seconds, args.rounds)
+                         args.seconds, args.rounds, args.paced, train_args, args.tag, args.hosts)
     if role == "router":
         from silcr.common.zenoh_session import check_endpoint
 

@@ -98,11 +98,17 @@ def test_the_scale_bench_measures_a_real_run_and_loses_nothing(tmp_path):
 
     from tests.helpers import REPO
 
+    # Paced by the learner with the actors as clients of the router, as a run with many actors is
+    # (the unthrottled mode differs only in one `silcr train` option).
     r = subprocess.run([sys.executable, "-m", "silcr.cli", "bench", "scale", "--quick", "--counts", "2",
-                        "--seconds", "5", "--out", str(tmp_path)], capture_output=True, text=True, cwd=REPO,
-                       timeout=600)
+                        "--seconds", "5", "--paced", "--train-args=--actor-zenoh-mode client", "--tag", "q",
+                        "--out", str(tmp_path)], capture_output=True, text=True, cwd=REPO, timeout=600)
     assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
-    (res,) = json.loads((tmp_path / "scale.json").read_text())["results"]
+    records = json.loads((tmp_path / "scale-q.json").read_text())
+    assert records["paced"] and records["train_args"] == ["--actor-zenoh-mode", "client"]
+    (res,) = records["results"]
+    assert res["transitions_per_s"] > 0  # measured after the actors went on: the steady state
+    assert res["router_cpu_cores"] > 0  # the router relays everything the client actors send and receive
     assert res["actors"] == 2 and res["actors_reporting"] == 2
     assert res["episodes_missing"] == 0 and res["episodes_dropped"] == 0 and res["episodes_rejected"] == 0
     assert res["episodes_received"] > 0 and res["episodes_received"] >= 0.8 * res["episodes_published"]
@@ -111,7 +117,38 @@ def test_the_scale_bench_measures_a_real_run_and_loses_nothing(tmp_path):
                 "learner_duty_cycle"):
         assert isinstance(res[key], float) and res[key] >= 0, key
     assert 20 < res["actor_rss_mb_median"] < 1000 and res["weights_bytes"] > 1000
-    assert (tmp_path / "scale.png").stat().st_size > 1000
-    bad = subprocess.run([sys.executable, "-m", "silcr.cli", "bench", "scale", "--counts", "8,x"],
-                         capture_output=True, text=True, cwd=REPO, timeout=60)
-    assert bad.returncode == 2 and "--counts" in bad.stderr and "Traceback" not in bad.stderr
+    assert (tmp_path / "scale-q.png").stat().st_size > 1000
+    for args, option in ((["--counts", "8,x"], "--counts"), (["--train-args='unclosed"], "--train-args"),
+                         (["--tag", "a/b"], "--tag")):
+        bad = subprocess.run([sys.executable, "-m", "silcr.cli", "bench", "scale", *args, "--out", str(tmp_path / "no")],
+                             capture_output=True, text=True, cwd=REPO, timeout=60)
+        assert bad.returncode == 2 and option in bad.stderr and "Traceback" not in bad.stderr
+        assert not (tmp_path / "no").exists()
+
+
+def test_the_scale_bench_runs_actors_on_namespace_hosts_behind_routers_of_their_own(tmp_path):
+    """`silcr bench scale --hosts 2 --counts 2`: four actors on two network-namespace hosts, each host
+    with a Zenoh router linked to the hub's; the weights reach every actor through its host's router,
+    nothing is lost, the host routers' CPU is measured, and the namespaces are gone afterwards."""
+    import json
+    import subprocess
+    import sys
+
+    from silcr.bench.netns import why_not_namespaces
+    from tests.helpers import REPO
+
+    if why := why_not_namespaces():
+        pytest.skip(why)
+    before = subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "bench", "scale", "--quick", "--hosts", "2", "--counts", "2",
+                        "--seconds", "5", "--tag", "h", "--out", str(tmp_path)], capture_output=True, text=True,
+                       cwd=REPO, timeout=600)
+    assert r.returncode == 0, r.stdout[-3000:] + r.stderr[-3000:]
+    records = json.loads((tmp_path / "scale-h.json").read_text())
+    (res,) = records["results"]
+    assert records["hosts"] == 2 and res["actors"] == 4 and res["actors_reporting"] == 4, res
+    assert res["episodes_missing"] == 0 and res["episodes_dropped"] == 0 and res["episodes_rejected"] == 0
+    assert res["episodes_received"] > 0 and res["transitions_per_s"] > 0
+    assert res["weights_latency_ms_worst_actor_p50"] is not None  # the actors took weights through their hosts
+    assert res["host_routers_cpu_cores"] is not None and res["host_routers_cpu_cores"] >= 0
+    assert subprocess.run(["ip", "netns", "list"], capture_output=True, text=True).stdout == before

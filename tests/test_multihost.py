@@ -9,79 +9,18 @@ Zenoh's lease and brought back: the actor must reconnect and go on publishing.
 
 from __future__ import annotations
 
-import os
-import secrets
-import shutil
 import subprocess
 import sys
 import time
 
 import pytest
 
+from silcr.bench.netns import Namespaces, why_not_namespaces
 from silcr.common import protocol as P
 from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, small_run_config, wait_for
 
-def _ip(*args: str) -> None:
-    subprocess.run(["ip", *args], check=True, capture_output=True, timeout=30)
 
-
-class Namespaces:
-    """hub + a1 + a2, and the root namespace linked to hub; torn down on exit."""
-
-    def __init__(self) -> None:
-        tag = secrets.token_hex(2)
-        self.hub, self.a1, self.a2 = f"silcr{tag}h", f"silcr{tag}a1", f"silcr{tag}a2"
-        self.net = 200 + secrets.randbelow(50)
-        self.tag = tag
-        self.created: list[str] = []
-
-    def addr(self, link: int, host: int) -> str:
-        return f"10.{self.net}.{link}.{host}"
-
-    def link_name(self, side: str, link: int) -> str:
-        return f"sv{self.tag}{side}{link}"  # <= 15 characters
-
-    def __enter__(self) -> "Namespaces":
-        for ns in (self.hub, self.a1, self.a2):
-            _ip("netns", "add", ns)
-            self.created.append(ns)
-            _ip("-n", ns, "link", "set", "lo", "up")
-        # link 0: root <-> hub; link 1: a1 <-> hub; link 2: a2 <-> hub
-        for link, ns in ((0, None), (1, self.a1), (2, self.a2)):
-            near, far = self.link_name("x", link), self.link_name("h", link)
-            _ip("link", "add", near, "type", "veth", "peer", "name", far)
-            _ip("link", "set", far, "netns", self.hub)
-            _ip("-n", self.hub, "addr", "add", f"{self.addr(link, 1)}/24", "dev", far)
-            _ip("-n", self.hub, "link", "set", far, "up")
-            if ns is not None:
-                _ip("link", "set", near, "netns", ns)
-                _ip("-n", ns, "addr", "add", f"{self.addr(link, 2)}/24", "dev", near)
-                _ip("-n", ns, "link", "set", near, "up")
-            else:
-                _ip("addr", "add", f"{self.addr(link, 2)}/24", "dev", near)
-                _ip("link", "set", near, "up")
-        return self
-
-    def __exit__(self, *exc: object) -> None:
-        subprocess.run(["ip", "link", "del", self.link_name("x", 0)], capture_output=True)
-        for ns in self.created:
-            subprocess.run(["ip", "netns", "del", ns], capture_output=True)
-
-
-def _can_make_namespaces() -> str | None:
-    if shutil.which("ip") is None:
-        return "iproute2 (`ip`) is not installed"
-    if os.geteuid() != 0:
-        return "network namespaces need root"
-    probe = f"silcrprobe{secrets.token_hex(2)}"
-    r = subprocess.run(["ip", "netns", "add", probe], capture_output=True, text=True)
-    if r.returncode != 0:
-        return f"cannot create a network namespace here: {r.stderr.strip()}"
-    subprocess.run(["ip", "netns", "del", probe], capture_output=True)
-    return None
-
-
-pytestmark = pytest.mark.skipif(bool(_can_make_namespaces()), reason=str(_can_make_namespaces()))
+pytestmark = pytest.mark.skipif(bool(why_not_namespaces()), reason=str(why_not_namespaces()))
 
 
 def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
@@ -98,7 +37,8 @@ def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
             stdout=log, stderr=subprocess.STDOUT, env=procs.env(), cwd=REPO,
         )
 
-    with Namespaces() as nets:
+    with Namespaces(hosts=2) as nets:
+        nets.a1, nets.a2 = nets.hosts
         try:
             start("router", nets.hub, "router", "--listen", f"tcp/0.0.0.0:{port}")
             local = ["--run", run, "--config", str(small), "--connect", f"tcp/127.0.0.1:{port}"]
