@@ -113,8 +113,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
                            "Zenoh router of its own; implies --paced (default: 0, all on this host)")
             p.add_argument("--paced", action="store_true", help="scale: actors at the learner's pace, as in a real "
                            "run (default: unthrottled, the transport's load at that many actors)")
-            p.add_argument("--train-args", default="", help="scale: more `silcr train` options for every count, "
-                           "quoted, e.g. --train-args='--weights-dtype float16'")
+            p.add_argument("--train-args", default="", help="scale: more `silcr train` options for every count "
+                           "(with --hosts: `silcr learner` options), quoted, e.g. --train-args='--weights-dtype float16'")
             p.add_argument("--tag", default="", help="scale: names the records scale-TAG.json and scale-TAG.png "
                            "(default: scale.json)")
             p.add_argument("--records", default="results/bench-scale/scale-paced-after.json",
@@ -286,6 +286,8 @@ def _main(argv: list[str] | None) -> int:
             subs[role].error(f"--counts: {args.counts!r} is not a comma-separated list of actor counts")
         if any(c < 1 for c in counts) or args.envs_per_actor < 1 or args.seconds < 0 or args.rounds < 0:
             subs[role].error("--counts, --envs-per-actor, --seconds and --rounds must be positive")
+        if not args.updates_per_s > 0:
+            subs[role].error(f"--updates-per-s: must be positive, got {args.updates_per_s}")
         if not 0 <= args.hosts <= 200:
             subs[role].error(f"--hosts: must be 0 to 200, got {args.hosts}")
         if args.hosts and args.envs_per_actor != 1:

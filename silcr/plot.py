@@ -44,7 +44,8 @@ class RunCurve:
 
 #: Config keys that never tell curves apart: they name or place a run, say how it was
 #: executed, or are already in the label.
-NOT_A_SETTING = {"run", "runs_dir", "seed", "resume", "connect", "listen", "zenoh_mode", "zenoh_config", "zenoh_listen",
+NOT_A_SETTING = {"run", "runs_dir", "seed", "resume", "connect", "listen", "zenoh_mode", "actor_zenoh_mode",
+                 "zenoh_config", "zenoh_listen",
                  "device", "torch_threads", "stats_interval", "checkpoint_interval", "buffer_checkpoint_interval",
                  "max_restarts", "actor_id", "actors", "envs_per_actor", "single_process", "weights_poll_steps",
                  "weights_wait", "batches_per_request", "requests_in_flight", "max_episode_bytes", "no_throttle",
