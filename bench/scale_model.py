@@ -227,6 +227,10 @@ def run(records: Path, out_dir: Path, learner_updates_per_s: float = 230.0) -> d
                 f"{max(r['actors'] for r in results if 'window_s' in r)} ({records.name})",
                 ["quantity", "measured", "predicted", "error"],
                 [[k, m, p, f"{(p - m) / m:+.0%}" if m else "-"] for k, (m, p) in pairs.items()])
+    slack = 2 * _option(train_args, "--spi-tolerance", 2_000.0) / data.get("window_s", 60.0)
+    print(f"transitions_per_s: the model gives the long-run rate (updates / samples per insert); the rate "
+          f"limiter lets a {data.get('window_s', 60.0):.0f} s window differ from it by up to {slack:.0f}/s "
+          f"(2 x --spi-tolerance / window)")
     rows = []
     for actors in (1_000, 10_000):
         hosts = actors // 32
@@ -241,11 +245,14 @@ def run(records: Path, out_dir: Path, learner_updates_per_s: float = 230.0) -> d
     shown = ["weights_interval_s", "learner_out_mb_per_s", "weights_latency_ms_p50", "router_cpu_cores",
              "host_router_cpu_cores", "transitions_per_s", "episodes_mb_per_s", "buffer_cpu_cores",
              "actor_utilisation", "zenoh_links"]
-    print_table(f"model: {learner_updates_per_s:.0f} learner updates/s, {weights_mb:.2f} MB weights, 32 actors per host",
-                ["actors", "topology", "tree fan-out", "budget counts", "paced", "shards", *shown],
-                [[r["actors"], r["topology"], r["tree_fanout"] or "-", r["budget_counts"], r["paced"], r["buffer_shards"],
-                  *[f"{r[k]:.1e}" if k == "actor_utilisation" else r[k] for k in shown]]
-                 for r in rows])
+    layouts = ["1 router", "host routers (budget as built)", "host routers", "host + rack routers",
+               "host + rack, unthrottled, 8 shards"]
+    for actors in (1_000, 10_000):
+        mine = [r for r in rows if r["actors"] == actors]
+        print_table(f"model: {actors:,} actors, 32 per host; learner {learner_updates_per_s:.0f} updates/s, "
+                    f"weights {weights_mb:.2f} MB, fan-out budget counting copies unless said",
+                    ["quantity", *layouts],
+                    [[k, *[f"{r[k]:.1e}" if k == "actor_utilisation" else r[k] for r in mine]] for k in shown])
     out = {"records": str(records), "calibration": dataclasses.asdict(calib),
            "check": {k: {"measured": m, "predicted": p} for k, (m, p) in pairs.items()}, "predictions": rows,
            "top_m_recall": {f"M={m} episodes, {k} shards": top_m_recall(m, k) for m in (50, 1000) for k in (2, 8, 32)}}
