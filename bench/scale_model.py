@@ -2,8 +2,9 @@
 
 An analytic model (issue 20, docs/scaling.md). `calibrate` fits a few unit costs on the
 smaller counts of a `silcr bench scale --paced` record (the router's CPU per MB it relays,
-the buffer's CPU per transition, bytes per transition, an actor's memory, the weights'
-latency as a base plus the time the relay takes to send one publication to every actor);
+the buffer's base load, bytes per transition, an actor's memory, the weights' latency as a
+base plus a time per MB the relay sends ahead of the median actor; the buffer's CPU per
+transition comes from the buffer benchmark instead);
 `predict` combines them with a deployment (actors, hosts, topology, buffer shards, the
 learner's update rate) into the quantities the bench measures. The largest measured count
 is left out of the fit and reproduced, so the record itself says how far to trust the model;
@@ -12,7 +13,8 @@ is left out of the fit and reproduced, so the record itself says how far to trus
 What the model leaves out, on purpose: the learner's update rate is an input (measured, or
 what a GPU gives), not derived from the CPU left to it; the scheduler's sharing of one
 machine's cores is not simulated, only each component's demand, which says where a machine
-runs out.
+runs out. Known to be missing (docs/scaling.md): a cost per message (stats and liveliness
+through the hub's router), which the 4-host measurement shows.
 """
 
 from __future__ import annotations
