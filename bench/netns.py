@@ -15,6 +15,10 @@ import shutil
 import subprocess
 
 
+# Every namespace this module makes starts with it, so that a leftover is easy to find.
+NAME_PREFIX = "silcrns"
+
+
 def _ip(*args: str) -> None:
     subprocess.run(["ip", *args], check=True, capture_output=True, timeout=30)
 
@@ -40,8 +44,8 @@ class Namespaces:
         if not 1 <= hosts <= 200:
             raise ValueError(f"hosts must be 1 to 200, got {hosts}")
         self.tag = secrets.token_hex(2)
-        self.hub = f"silcr{self.tag}h"
-        self.hosts = [f"silcr{self.tag}a{i}" for i in range(1, hosts + 1)]
+        self.hub = f"{NAME_PREFIX}{self.tag}h"
+        self.hosts = [f"{NAME_PREFIX}{self.tag}a{i}" for i in range(1, hosts + 1)]
         self.net = 200 + secrets.randbelow(50)
         self.created: list[str] = []
 
