@@ -445,14 +445,18 @@ class WeightsClient(Generic[PolicyT]):
 
 
 class ZenohWeightsClient(WeightsClient[PolicyT]):
-    """Follows the weights topic keeping only the newest message (a slow actor never holds the learner
-    back). At start it asks the learner's queryable for the latest weights, so a late joiner does not
-    wait for the next broadcast; with no learner within `wait_s` it starts from `initial`."""
+    """Follows the weights topic keeping only the newest set (a slow actor never holds the learner
+    back). Each message is decoded as it arrives, so a malformed one is counted even when a newer set
+    replaces it before the actor looks (a paused actor looks every 0.25 s). At start it asks the
+    learner's queryable for the latest weights, so a late joiner does not wait for the next
+    broadcast; with no learner within `wait_s` it starts from `initial`."""
 
     def __init__(self, session: zenoh.Session, keys: P.Keys, make_policy: Callable[[P.Weights], PolicyT],
                  initial: Callable[[], P.Weights], wait_s: float, stop: StopFlag) -> None:
-        self._sub = session.declare_subscriber(keys.weights, zenoh.handlers.RingChannel(1))
         super().__init__(make_policy, initial())
+        self._lock = threading.Lock()
+        self._newest: P.Weights | None = None
+        self._sub = session.declare_subscriber(keys.weights, self._on_weights)  # before the fetch: none missed
         fetched = self._fetch(session, keys, wait_s, stop)
         if fetched is None or not self._offer(fetched):
             log.info("no learner answered; acting with a local random policy until weights arrive")
@@ -476,16 +480,19 @@ class ZenohWeightsClient(WeightsClient[PolicyT]):
         finally:
             querier.undeclare()
 
-    def update(self) -> bool:
-        msg = self._sub.try_recv()
-        if msg is None:
-            return False
+    def _on_weights(self, sample: zenoh.Sample) -> None:
         try:
-            new = P.Weights.decode(msg.payload.to_bytes())
+            weights = P.Weights.decode(sample.payload.to_bytes())
         except P.ProtocolError as e:
             self._malformed(e)
-            return False
-        return self._offer(new)
+            return
+        with self._lock:
+            self._newest = weights
+
+    def update(self) -> bool:
+        with self._lock:
+            new, self._newest = self._newest, None
+        return new is not None and self._offer(new)
 
 
 class WeightsServer:

@@ -134,3 +134,26 @@ def test_a_paused_writer_sleeps_until_the_buffer_lets_it_go_on():
         t0 = time.monotonic()
         assert writer.wait_unpaused(20)
         assert not writer.paused() and time.monotonic() - t0 < 10
+
+
+def test_a_malformed_weights_message_is_counted_even_when_a_newer_set_replaces_it_unread():
+    """The actor takes only the newest weights; a bad message that a good one follows before the actor
+    looks (a paused actor looks every 0.25 s) is still counted, as it arrives."""
+    from silcr.common.clients import ZenohWeightsClient
+    from silcr.common.lifecycle import StopFlag
+    from silcr.common.zenoh_session import open_session, router_config, session_config
+    from tests.helpers import free_port, wait_for
+
+    endpoint = f"tcp/127.0.0.1:{free_port()}"
+    keys = P.Keys("weights-superseded")
+    with open_session(router_config([endpoint])), \
+            open_session(session_config([endpoint], mode="client")) as actor_side, \
+            open_session(session_config([endpoint], mode="client")) as learner_side:
+        client = ZenohWeightsClient(actor_side, keys, _policy, lambda: _weights(0, incarnation=1), 0.0, StopFlag())
+        pub = learner_side.declare_publisher(keys.weights)
+        wait_for(lambda: pub.matching_status.matching, 20, "the actor's subscription")
+        pub.put(b"\xc1 not weights")
+        pub.put(_weights(7, incarnation=1).encode())
+        wait_for(lambda: client.rejections, 10, "the malformed message to be counted")
+        wait_for(client.update, 10, "the good weights")
+        assert client.version == 7 and sum(client.rejections.values()) == 1
