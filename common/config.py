@@ -123,6 +123,9 @@ class Config:
     resume: bool = _opt(False, SERVICE, "continue from the checkpoints in <run dir>/checkpoints/ when they exist (learner: networks, optimizers, alpha, counters; buffer: D_O, D_E, counters)")
     device: str = _opt("auto", {"train", "learner"}, "torch device for the learner (auto: CUDA when present)", choices=DEVICES)
     torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: the faster of 1 and all cores, timed at start)")
+    keep_denormals: bool = _opt(False, {"train", "learner"}, "compute the CPU update on denormal floats instead of flushing "
+                                "them to zero: up to a fifth slower, and the same results to the last digit as runs made "
+                                "before silcr 0.4 (docs/performance.md, \"Denormals\")")
     batches_per_request: int = _opt(4, {"train", "learner"}, "batches fetched per sample query")
     requests_in_flight: int = _opt(2, {"train", "learner"}, "sample queries kept in flight so the learner never waits on the network")
     # --- GASIL (learner.gasil; sources in docs/algorithm.md, "GASIL") -------------

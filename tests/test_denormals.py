@@ -1,0 +1,62 @@
+"""Denormal floats are flushed to zero while the learner's CPU update runs, and only then (learner/denormals.py)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from silcr.common import protocol as P
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
+from silcr.learner import denormals
+from silcr.learner.update import Update
+
+DENORMAL = 1e-39  # below float32's smallest normal number, 1.2e-38
+
+
+def survives() -> bool:
+    """Whether a float32 denormal survives arithmetic on this thread now."""
+    return float(torch.tensor([DENORMAL]) * 1.0) != 0.0
+
+
+@pytest.fixture(autouse=True)
+def _mode_off_after():
+    yield
+    torch.set_flush_denormal(False)
+
+
+def test_denormals_are_flushed_inside_the_block_and_kept_outside():
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU cannot flush denormals (not x86 with SSE3)")
+    assert survives()
+    with denormals.flushed(torch.device("cpu")):
+        assert not survives()
+    assert survives()  # MuJoCo, stepped by the same thread in --single-process, sees the default mode
+    with denormals.flushed(torch.device("cpu"), enabled=False):
+        assert survives()
+    with pytest.raises(RuntimeError), denormals.flushed(torch.device("cpu")):
+        raise RuntimeError("an update that fails")
+    assert survives()  # restored on the way out of a failure too
+
+
+@pytest.mark.parametrize("keep", [False, True])
+def test_the_learners_update_runs_with_denormals_flushed_unless_kept(monkeypatch, keep):
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU cannot flush denormals")
+    spec = EnvSpec.of("InvertedPendulum-v5")
+    update = Update(Config(run="t", env=spec.env_id, hidden=[8, 8], batch_size=4, torch_threads=1,
+                           keep_denormals=keep), spec)
+    seen = []
+    real = update.sac.update
+    monkeypatch.setattr(update.sac, "update", lambda *a: (seen.append(survives()), real(*a))[1])
+    batch = P.Batch.empty(4, spec.obs_dim, spec.act_dim)
+    batch.obs[:] = batch.next_obs[:] = 0.1
+    batch.actions[:] = 0.0
+    batch.rewards[:] = 1.0
+    batch.terminated[:] = batch.truncated[:] = 0
+    batch.policy_version[:] = 0
+    assert update.train(P.BatchReply("ok", {"batches": 2, "batch_size": 2}, batch), 0) == 2
+    assert seen == [keep, keep]
+    assert survives()  # and the mode is back to the default after the reply
+    assert np.isfinite(update.stats()["critic_loss"])
