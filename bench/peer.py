@@ -13,12 +13,21 @@ They run alternated, round after round, so that each round exposes all three to 
 background load, and the bench reports each silcr program's wall and CPU time (user + sys of the
 whole process tree) as ratios to SB3's of the same round: min, median and max over the rounds.
 Each program reports the updates it made, so the table also shows that the work was the same.
+
+For silcr's programs the bench also reads the learner's log: the torch threads it chose and how
+long its updates took from the first to the last. Each round then times the same update alone
+at those threads, in a fresh process whose OpenMP threads wait as the program's do (the update's
+floor on this machine, in the same run), and the
+table gives each program's learner rate as a share of that floor: 1 means the learner trained as
+fast as the update alone can run, and a lower share is time lost to waits, to the processes
+beside it and to the data path.
 """
 
 from __future__ import annotations
 
 import json
 import os
+import re
 import resource
 import shutil
 import statistics
@@ -130,12 +139,81 @@ def run_once(program: str, cfg: PeerConfig, timeout: float = 3600) -> dict[str, 
         import torch
 
         runs_dir = Path(tempfile.mkdtemp(prefix=f"silcr-bench-peer-{program}-"))
-        wall, cpu, _ = _timed(command(*cfg.silcr_args(runs_dir, "peer", program == "single-process")), timeout)
+        # Without the thread-pool defaults this process took from silcr: a user's shell has none.
+        wall, cpu, _ = _timed(command(*cfg.silcr_args(runs_dir, "peer", program == "single-process")), timeout,
+                              env=_peer_env())
         counters = torch.load(runs_dir / "peer" / "checkpoints" / "learner.pt", map_location="cpu",
                               weights_only=True)["counters"]
+        log_name = "single-process.log" if program == "single-process" else "learner.log"
+        account = learner_account((runs_dir / "peer" / "logs" / log_name).read_text(errors="replace"))
         shutil.rmtree(runs_dir, ignore_errors=True)  # its checkpoints: tens of MB a run
-        work = {"updates": int(counters["updates"]), "env_steps": int(counters["env_steps"])}
+        work = {"updates": int(counters["updates"]), "env_steps": int(counters["env_steps"])} | account
     return {"program": program, "wall_s": wall, "cpu_s": cpu, **work}
+
+
+# The learner's own account of its training (learner/bookkeeping.py, `Bookkeeping.finish`, and the thread probe).
+LEARNER_SPAN = re.compile(r"training: (\d+) updates in ([\d.]+) s from the first to the last .*?([\d.]+) s of it in updates")
+LEARNER_THREADS = re.compile(r"torch threads: (\d+)")
+
+
+def learner_account(log_text: str) -> dict[str, Any]:
+    """Threads, updates and seconds from a learner's log: what the floor is compared with."""
+    span = LEARNER_SPAN.search(log_text)
+    threads = LEARNER_THREADS.search(log_text)
+    if span is None:
+        return {}
+    return {"threads": int(threads.group(1)) if threads else None, "span_updates": int(span.group(1)),
+            "span_s": float(span.group(2)), "in_updates_s": float(span.group(3))}
+
+
+def floor_ms(cfg: PeerConfig, threads: int, updates: int = 200) -> float:
+    """Milliseconds per update of the same SAC update alone in this process (median of 5 runs of updates/5)."""
+    import torch
+
+    from silcr.common.envs import EnvSpec
+    from silcr.learner import denormals
+    from silcr.learner.sac import Sac, SacHyper
+
+    spec = EnvSpec.of(cfg.env_id)
+    before = torch.get_num_threads()
+    torch.set_num_threads(threads)
+    try:
+        sac = Sac(spec.obs_dim, spec.act_dim, list(cfg.hidden), SacHyper(cfg.gamma, cfg.tau, cfg.lr), torch.device("cpu"))
+        g = torch.Generator().manual_seed(0)
+        n = cfg.batch_size
+        batch = (torch.randn(n, spec.obs_dim, generator=g), torch.rand(n, spec.act_dim, generator=g) * 2 - 1,
+                 torch.randn(n, generator=g), torch.randn(n, spec.obs_dim, generator=g), torch.zeros(n), torch.zeros(n))
+        times = []
+        with denormals.flushed(torch.device("cpu")):
+            for _ in range(20):
+                sac.update(*batch)
+            for _ in range(5):
+                t0 = time.perf_counter()
+                for _ in range(updates // 5):
+                    sac.update(*batch)
+                times.append((time.perf_counter() - t0) / (updates // 5))
+        return 1000 * statistics.median(times)
+    finally:
+        torch.set_num_threads(before)
+
+
+# The floor is timed in a fresh interpreter started as the program was, so that its OpenMP threads
+# wait as the program's do (`silcr train --single-process` lets them spin briefly: silcr/__init__.py).
+FLOOR_SCRIPT = """
+import json, sys
+import silcr
+if sys.argv[2] == "single-process":
+    silcr.spin_openmp_threads_briefly()
+from silcr.bench.peer import PeerConfig, floor_ms
+print(floor_ms(PeerConfig(**json.loads(sys.argv[1])), int(sys.argv[3])))
+"""
+
+
+def floor_ms_as(program: str, cfg: PeerConfig, threads: int) -> float:
+    """`floor_ms` in a process whose OpenMP threads wait as `program`'s do."""
+    r = subprocess.run([sys.executable, "-c", FLOOR_SCRIPT, json.dumps(asdict(cfg)), program, str(threads)],
+                       capture_output=True, text=True, timeout=600, env=_peer_env(), check=True)
+    return float(r.stdout.strip().splitlines()[-1])
 
 
 def _spread(values: list[float]) -> dict[str, float]:
@@ -152,9 +230,24 @@ def compare(cfg: PeerConfig, rounds: int) -> dict[str, Any]:
             print(f"  {'x'.join(map(str, cfg.hidden))} round {r + 1}/{rounds} {program}: "
                   f"{got[program]['wall_s']:.1f} s wall, {got[program]['cpu_s']:.1f} s CPU, "
                   f"{got[program]['updates']} updates", flush=True)
+        # The floor, alone, after the round's runs, at the threads the distributed learner chose.
+        for program in PROGRAMS[1:]:
+            run = got[program]
+            if run.get("span_s"):
+                run["floor_ms"] = floor_ms_as(program, cfg, run.get("threads") or 1)
+                run["rate_vs_floor"] = run["floor_ms"] * run["span_updates"] / (1000 * run["span_s"])
+                run["duty_cycle"] = run["in_updates_s"] / run["span_s"]
+        print("  update floor, alone, at the learner's threads: " + ", ".join(
+            f"{p} {got[p].get('floor_ms', float('nan')):.2f} ms ({got[p].get('threads')} thread(s); learner rate / floor "
+            f"{got[p].get('rate_vs_floor', float('nan')):.2f})" for p in PROGRAMS[1:]), flush=True)
         per_round.append(got)
     ratios = {f"{program}_{what.removesuffix('_s')}": _spread([got[program][what] / got["sb3"][what] for got in per_round])
               for program in PROGRAMS[1:] for what in ("wall_s", "cpu_s")}
+    for program in PROGRAMS[1:]:
+        for what in ("rate_vs_floor", "duty_cycle"):
+            values = [got[program][what] for got in per_round if what in got[program]]
+            if values:
+                ratios[f"{program}_{what}"] = _spread(values)
     return {"config": asdict(cfg), "runs": [got[p] for got in per_round for p in PROGRAMS], "ratios": ratios}
 
 
@@ -179,6 +272,10 @@ def run(out_dir: Path, quick: bool = False, rounds: int = 0) -> dict[str, Any]:
             for what in ("wall", "cpu"):
                 s = res["ratios"][f"{program}_{what}"]
                 rows.append([net, label, f"{what} / SB3's", s["min"], s["median"], s["max"]])
+            for what, name in (("rate_vs_floor", "learner rate / update floor"), ("duty_cycle", "learner duty cycle")):
+                if f"{program}_{what}" in res["ratios"]:
+                    s = res["ratios"][f"{program}_{what}"]
+                    rows.append([net, label, name, s["min"], s["median"], s["max"]])
         for program in PROGRAMS:
             mine = [x for x in res["runs"] if x["program"] == program]
             rows.append([net, program, "updates, median wall s", statistics.median(x["updates"] for x in mine),

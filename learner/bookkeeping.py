@@ -77,6 +77,10 @@ class Bookkeeping:
         self.progress = ProgressLog(cfg.run_dir, resume=self.resumed)
         self.started = time.monotonic()
         self.update_time = 0.0
+        # This start's training span, from its first update to its last (logged at the end: `silcr bench peer` reads it)
+        self.first_update_at: float | None = None
+        self.last_update_at = 0.0
+        self.updates_this_start = 0
         self.buffer_meta: dict[str, Any] = {}  # the latest reply's description of the buffer (D_E's returns)
         self.policy_lag: collections.deque[float] = collections.deque(maxlen=200)  # D_O rows only
         self.expert_age: collections.deque[float] = collections.deque(maxlen=200)  # D_E rows
@@ -137,6 +141,11 @@ class Bookkeeping:
         """`n` updates were made in `seconds`: publish weights and checkpoint when due."""
         self.updates += n
         self.update_time += seconds
+        now = time.monotonic()
+        if self.first_update_at is None:
+            self.first_update_at = now - seconds
+        self.last_update_at = now
+        self.updates_this_start += n
         if self.updates // self.cfg.weights_interval != (self.updates - n) // self.cfg.weights_interval:
             self.policy_version += 1
             self.publish_weights()
@@ -182,6 +191,11 @@ class Bookkeeping:
                 self.evaluate()
             log.info("finished: %d env steps, %d updates, last eval return %s", self.env_steps, self.updates,
                      self.last_eval_return)
+        if self.first_update_at is not None:
+            span = self.last_update_at - self.first_update_at
+            log.info("training: %d updates in %.2f s from the first to the last (%.2f ms each), %.2f s of it in updates "
+                     "(duty cycle %.3f)", self.updates_this_start, span, 1000 * span / self.updates_this_start,
+                     self.update_time, self.update_time / max(span, 1e-9))
         if not self.checkpoint():
             log.error("the final checkpoint could not be written (%d checkpoint(s) failed): --resume would continue "
                       "from the last one that was", self.checkpoints_failed)
