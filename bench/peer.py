@@ -15,9 +15,8 @@ whole process tree) as ratios to SB3's of the same round: min, median and max ov
 Each program reports the updates it made, so the table also shows that the work was the same.
 
 For silcr's programs the bench also reads the learner's log: the torch threads it chose and how
-long its updates took from the first to the last. Each round then times the same update alone
-at those threads, in a fresh process whose OpenMP threads wait as the program's do (the update's
-floor on this machine, in the same run), and the
+long its updates took from the first to the last. Each round then times the same update alone in
+this process at those threads (the update's floor on this machine, in the same run), and the
 table gives each program's learner rate as a share of that floor: 1 means the learner trained as
 fast as the update alone can run, and a lower share is time lost to waits, to the processes
 beside it and to the data path.
@@ -197,25 +196,6 @@ def floor_ms(cfg: PeerConfig, threads: int, updates: int = 200) -> float:
         torch.set_num_threads(before)
 
 
-# The floor is timed in a fresh interpreter started as the program was, so that its OpenMP threads
-# wait as the program's do (`silcr train --single-process` lets them spin briefly: silcr/__init__.py).
-FLOOR_SCRIPT = """
-import json, sys
-import silcr
-if sys.argv[2] == "single-process":
-    silcr.spin_openmp_threads_briefly()
-from silcr.bench.peer import PeerConfig, floor_ms
-print(floor_ms(PeerConfig(**json.loads(sys.argv[1])), int(sys.argv[3])))
-"""
-
-
-def floor_ms_as(program: str, cfg: PeerConfig, threads: int) -> float:
-    """`floor_ms` in a process whose OpenMP threads wait as `program`'s do."""
-    r = subprocess.run([sys.executable, "-c", FLOOR_SCRIPT, json.dumps(asdict(cfg)), program, str(threads)],
-                       capture_output=True, text=True, timeout=600, env=_peer_env(), check=True)
-    return float(r.stdout.strip().splitlines()[-1])
-
-
 def _spread(values: list[float]) -> dict[str, float]:
     return {"min": min(values), "median": statistics.median(values), "max": max(values)}
 
@@ -234,7 +214,7 @@ def compare(cfg: PeerConfig, rounds: int) -> dict[str, Any]:
         for program in PROGRAMS[1:]:
             run = got[program]
             if run.get("span_s"):
-                run["floor_ms"] = floor_ms_as(program, cfg, run.get("threads") or 1)
+                run["floor_ms"] = floor_ms(cfg, run.get("threads") or 1)
                 run["rate_vs_floor"] = run["floor_ms"] * run["span_updates"] / (1000 * run["span_s"])
                 run["duty_cycle"] = run["in_updates_s"] / run["span_s"]
         print("  update floor, alone, at the learner's threads: " + ", ".join(

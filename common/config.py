@@ -125,7 +125,7 @@ class Config:
     torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: the faster of 1 and all cores, timed at start)")
     keep_denormals: bool = _opt(False, {"train", "learner"}, "compute the CPU update on denormal floats instead of flushing "
                                 "them to zero: up to a fifth slower, and the same results to the last digit as runs made "
-                                "before silcr 0.4 (docs/performance.md, \"Denormals\")")
+                                "before silcr 0.4 (docs/performance.md, \"Against Stable-Baselines3\")")
     batches_per_request: int = _opt(4, {"train", "learner"}, "batches fetched per sample query")
     requests_in_flight: int = _opt(2, {"train", "learner"}, "sample queries kept in flight so the learner never waits on the network")
     # --- GASIL (learner.gasil; sources in docs/algorithm.md, "GASIL") -------------

@@ -28,7 +28,6 @@ There is no stats topic: the progress bar, progress.csv and TensorBoard report.
 from __future__ import annotations
 
 import logging
-import os
 import signal
 import sys
 import time
@@ -49,8 +48,7 @@ from silcr.learner.learner import Learner
 log = logging.getLogger("train")
 
 
-def run_single_process(cfg: Config, openmp_spinning: bool = False) -> int:
-    """Train in this process; `openmp_spinning`: idle torch threads spin briefly (`silcr.spin_openmp_threads_briefly`)."""
+def run_single_process(cfg: Config) -> int:
     run_dir = cfg.run_dir
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     cfg.save(run_dir / "config.toml")
@@ -60,10 +58,6 @@ def run_single_process(cfg: Config, openmp_spinning: bool = False) -> int:
     print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), "
           f"{cfg.total_steps} env steps, single process)", flush=True)
     stop = StopFlag().install_signal_handlers()
-    log.info("OpenMP: idle torch threads %s", f"spin {os.environ.get('GOMP_SPINCOUNT')} times before sleeping "
-             "(this process has its cores to itself)" if openmp_spinning else
-             f"as set before the run (OMP_WAIT_POLICY={os.environ.get('OMP_WAIT_POLICY')}, "
-             f"GOMP_SPINCOUNT={os.environ.get('GOMP_SPINCOUNT')})")
     spec = EnvSpec.of(cfg.env)
     try:
         replay, snap = open_replay(cfg, spec)

@@ -7,20 +7,20 @@ fall below float32's smallest normal number, 1.2e-38, and stay in the
 denormal range for hundreds to thousands of steps. x86 CPUs compute on
 denormals through a microcode assist, tens of times slower than on normal
 numbers. Measured on this project's 2-core machine (docs/performance.md,
-"Denormals"), from a Hopper-v5 learner after 10,000 updates: 7% of the critics'
-Adam state and 17% of the actor's were denormal, and one critic Adam step took
-1.08 ms instead of 0.15 ms with them flushed: a fifth of the whole update.
+"Against Stable-Baselines3"), from a Hopper-v5 learner after 10,000 updates:
+7% of the critics' Adam state and 17% of the actor's were denormal, and one
+critic Adam step took 1.08 ms instead of 0.15 ms with them flushed: a fifth of
+the whole update.
 
 Flushing changes nothing an update can see: a denormal moment contributes
 lr * m / (sqrt(v) + eps) < 1e-30 to a weight, far below the weight's last bit.
 
 The CPU's mode (MXCSR's flush-to-zero and denormals-are-zero bits) belongs to
-each thread, and a thread inherits its creator's. So the mode is set only
-around the update, not for the process: in `silcr train --single-process` the
-same thread steps MuJoCo, whose physics must not change with the learner's
-settings. torch's OpenMP threads are created during the first parallel update
-(or the thread probe) inside this context, so they inherit the mode and keep it;
-they run nothing but torch's kernels.
+each thread. So the mode is set only around the update, not for the process:
+in `silcr train --single-process` the same thread steps MuJoCo, whose physics
+must not change with the learner's settings. torch's OpenMP threads flush too
+while it is set (checked: a 2-thread multiply of 2M denormals gave zeros,
+whether the thread pool started before the block or inside it).
 """
 
 from __future__ import annotations

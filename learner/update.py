@@ -100,7 +100,7 @@ class Update:
         batch = (torch.randn(n, spec.obs_dim, generator=g), actions,
                  torch.randint(0, 2, (n,), generator=g).float(), torch.randn(n, spec.obs_dim, generator=g),
                  torch.zeros(n), torch.zeros(n))
-        with denormals.flushed(self.device, not self.cfg.keep_denormals):  # torch's threads are born here and keep the mode (denormals.py)
+        with denormals.flushed(self.device, not self.cfg.keep_denormals):  # timed as the update will run (denormals.py)
             best, times = choose_threads(lambda: probe.update(*batch), cores)
         torch.set_num_threads(best)
         log.info("torch threads: %d (timed the update: %s; --torch-threads N sets it)", best,

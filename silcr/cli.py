@@ -358,12 +358,9 @@ def _main(argv: list[str] | None) -> int:
                                                         f"pick another port")
             with hold(cfg.run_dir):  # for the run's life: one run directory, one run
                 if cfg.single_process:
-                    from silcr import spin_openmp_threads_briefly
-
-                    spinning = spin_openmp_threads_briefly()  # before torch loads (silcr/__init__.py)
                     from silcr.deploy.single_process import run_single_process
 
-                    return run_single_process(cfg, spinning)
+                    return run_single_process(cfg)
                 from silcr.deploy.local import run_train
 
                 return run_train(cfg)
