@@ -64,9 +64,15 @@ def test_the_quick_peer_bench_runs_all_three_programs_on_the_same_work(tmp_path)
     # the same budget and, within a few (where each program stops its last step), the same updates
     assert all(x["env_steps"] >= 800 for x in runs.values()), runs
     assert max(x["updates"] for x in runs.values()) - min(x["updates"] for x in runs.values()) <= 6, runs
-    for key in ("distributed_wall", "distributed_cpu", "single-process_wall", "single-process_cpu"):
+    for key in ("distributed_wall", "distributed_cpu", "single-process_wall", "single-process_cpu",
+                "distributed_rate_vs_floor", "single-process_rate_vs_floor"):
         s = result["ratios"][key]
         assert 0 < s["min"] <= s["median"] <= s["max"], result["ratios"]
+    # silcr's learners reported their training span in their logs, and the bench timed the update alone
+    for program in ("distributed", "single-process"):
+        run = runs[program]
+        assert run["threads"] >= 1 and run["span_updates"] == run["updates"] and run["floor_ms"] > 0, run
+        assert 0 < run["in_updates_s"] <= run["span_s"] and 0 < run["duty_cycle"] <= 1, run
 
 
 def test_the_peer_runs_without_silcrs_thread_pool_defaults_but_with_the_users(monkeypatch):
