@@ -172,25 +172,17 @@ def floor_ms(cfg: PeerConfig, threads: int, updates: int = 200) -> float:
     from silcr.common.envs import EnvSpec
     from silcr.learner import denormals
     from silcr.learner.sac import Sac, SacHyper
+    from silcr.learner.threads import time_per_update
+    from silcr.learner.update import synthetic_batch
 
     spec = EnvSpec.of(cfg.env_id)
     before = torch.get_num_threads()
-    torch.set_num_threads(threads)
     try:
         sac = Sac(spec.obs_dim, spec.act_dim, list(cfg.hidden), SacHyper(cfg.gamma, cfg.tau, cfg.lr), torch.device("cpu"))
-        g = torch.Generator().manual_seed(0)
-        n = cfg.batch_size
-        batch = (torch.randn(n, spec.obs_dim, generator=g), torch.rand(n, spec.act_dim, generator=g) * 2 - 1,
-                 torch.randn(n, generator=g), torch.randn(n, spec.obs_dim, generator=g), torch.zeros(n), torch.zeros(n))
-        times = []
+        batch = synthetic_batch(spec, cfg.batch_size)
         with denormals.flushed(torch.device("cpu")):
-            for _ in range(20):
-                sac.update(*batch)
-            for _ in range(5):
-                t0 = time.perf_counter()
-                for _ in range(updates // 5):
-                    sac.update(*batch)
-                times.append((time.perf_counter() - t0) / (updates // 5))
+            time_per_update(lambda: sac.update(*batch), threads, 20)  # warm-up
+            times = [time_per_update(lambda: sac.update(*batch), threads, updates // 5) for _ in range(5)]
         return 1000 * statistics.median(times)
     finally:
         torch.set_num_threads(before)

@@ -53,6 +53,18 @@ def to_tensor(a: np.ndarray, device: torch.device) -> torch.Tensor:
         return torch.from_numpy(a).to(device, non_blocking=True)
 
 
+def synthetic_batch(spec: EnvSpec, n: int) -> tuple[torch.Tensor, ...]:
+    """A batch of `n` random rows of `spec`'s shapes, for timing the update (`Sac.update`'s arguments).
+
+    Drawn from its own generator, so timing an update changes nothing a run draws.
+    """
+    g = torch.Generator().manual_seed(0)
+    actions = (torch.randint(0, spec.n_actions, (n, 1), generator=g) if spec.discrete
+               else torch.rand(n, spec.act_dim, generator=g) * 2 - 1)
+    return (torch.randn(n, spec.obs_dim, generator=g), actions, torch.randint(0, 2, (n,), generator=g).float(),
+            torch.randn(n, spec.obs_dim, generator=g), torch.zeros(n), torch.zeros(n))
+
+
 class BufferMismatch(RuntimeError):
     """The buffer service's batches are not what this learner's --algo needs (it runs another --algo)."""
 
@@ -93,13 +105,7 @@ class Update:
             torch.set_num_threads(self.cfg.torch_threads or torch.get_num_threads())
             return torch.get_num_threads()
         probe = self._new_sac()  # a throwaway copy
-        g = torch.Generator().manual_seed(0)
-        n = self.cfg.batch_size
-        actions = (torch.randint(0, spec.n_actions, (n, 1), generator=g) if spec.discrete
-                   else torch.rand(n, spec.act_dim, generator=g) * 2 - 1)
-        batch = (torch.randn(n, spec.obs_dim, generator=g), actions,
-                 torch.randint(0, 2, (n,), generator=g).float(), torch.randn(n, spec.obs_dim, generator=g),
-                 torch.zeros(n), torch.zeros(n))
+        batch = synthetic_batch(spec, self.cfg.batch_size)
         with denormals.flushed(self.device, not self.cfg.keep_denormals):  # timed as the update will run (denormals.py)
             best, times = choose_threads(lambda: probe.update(*batch), cores)
         torch.set_num_threads(best)
