@@ -40,6 +40,24 @@ def test_denormals_are_flushed_inside_the_block_and_kept_outside():
     assert survives()  # restored on the way out of a failure too
 
 
+def test_torchs_other_threads_flush_inside_the_block_too():
+    """The mode belongs to each thread: torch's OpenMP workers get it copied (a 2-thread update ran 13.0 ms, not 8.9, without)."""
+    if not torch.set_flush_denormal(False):
+        pytest.skip("this CPU cannot flush denormals")
+    if denormals.team_env() is None:
+        pytest.skip("torch's OpenMP runtime cannot be reached here (not Linux, or not libgomp/libiomp5/libomp)")
+    threads = torch.get_num_threads()
+    torch.set_num_threads(2)
+    try:
+        many = torch.full((2_000_000,), DENORMAL)  # big enough that torch splits the multiply over both threads
+        assert int(((many * 1.0) != 0).sum()) == many.numel()  # the pool exists, in the default mode
+        with denormals.flushed(torch.device("cpu")):
+            assert int(((many * 1.0) != 0).sum()) == 0  # the worker's half too (1M survived without the copy)
+        assert int(((many * 1.0) != 0).sum()) == many.numel()  # and every thread is back to the default
+    finally:
+        torch.set_num_threads(threads)
+
+
 @pytest.mark.parametrize("keep", [False, True])
 def test_the_learners_update_runs_with_denormals_flushed_unless_kept(monkeypatch, keep):
     if not torch.set_flush_denormal(False):
