@@ -188,6 +188,24 @@ def floor_ms(cfg: PeerConfig, threads: int, updates: int = 200) -> float:
         torch.set_num_threads(before)
 
 
+FLOOR_SCRIPT = """
+import json, sys
+import silcr
+if sys.argv[2] == "single-process":
+    silcr.spin_in_single_process()  # its threads wait as that program's do
+from silcr.bench.peer import PeerConfig, floor_ms
+cfg = json.loads(sys.argv[1])
+print(floor_ms(PeerConfig(**cfg | {"hidden": tuple(cfg["hidden"])}), int(sys.argv[3])))
+"""
+
+
+def program_floor_ms(cfg: PeerConfig, program: str, threads: int) -> float:
+    """`floor_ms` in a fresh process whose OpenMP threads wait as `program`'s learner's do (a pool's policy is fixed at load)."""
+    out = subprocess.run([sys.executable, "-c", FLOOR_SCRIPT, json.dumps(asdict(cfg)), program, str(threads)],
+                         env=_peer_env(), capture_output=True, text=True, check=True).stdout
+    return float(out.strip().splitlines()[-1])
+
+
 def _spread(values: list[float]) -> dict[str, float]:
     return {"min": min(values), "median": statistics.median(values), "max": max(values)}
 
@@ -206,7 +224,7 @@ def compare(cfg: PeerConfig, rounds: int) -> dict[str, Any]:
         for program in PROGRAMS[1:]:
             run = got[program]
             if run.get("span_s"):
-                run["floor_ms"] = floor_ms(cfg, run.get("threads") or 1)
+                run["floor_ms"] = program_floor_ms(cfg, program, run.get("threads") or 1)
                 run["rate_vs_floor"] = run["floor_ms"] * run["span_updates"] / (1000 * run["span_s"])
                 run["duty_cycle"] = run["in_updates_s"] / run["span_s"]
         print("  update floor, alone, at the learner's threads: " + ", ".join(

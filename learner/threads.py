@@ -57,3 +57,54 @@ def choose_threads(step: Callable[[], None], cores: int, updates: int = 10, roun
     medians = {n: sorted(ts)[len(ts) // 2] for n, ts in times.items()}
     best = min(candidates, key=lambda n: medians[n])
     return best, medians
+
+
+class Retimer:
+    """Re-chooses the threads during the run, on the run's own updates, every `every_s` seconds.
+
+    The choice at start holds only while the machine stays as it was. Another process that
+    takes a core makes a multi-thread update wait for its other threads: measured on 2 cores,
+    two `--single-process` runs side by side at 800-400 took 54 ms per update at 2 threads
+    against 15 ms at 1 (docs/performance.md). So now and then the next `updates` updates run
+    at each candidate count in turn (they are real updates, counted as usual), and the faster
+    count is kept; a change is logged. It costs the slower count's extra time for `updates`
+    updates a minute: about 1% when the choice is right.
+    """
+
+    def __init__(self, candidates: list[int], current: int, every_s: float = 60.0, updates: int = 10,
+                 clock: Callable[[], float] = time.monotonic) -> None:
+        self.candidates, self.current = candidates, current
+        self.every_s, self.updates, self.clock = every_s, updates, clock
+        self._next_at = clock() + every_s
+        self._queue: list[int] = []  # counts still to time in this re-check
+        self._timing: int | None = None
+        self._seen: dict[int, list[float]] = {}  # count -> [updates, seconds]
+
+    def observe(self, updates: int, seconds: float) -> int:
+        """Note `updates` updates that took `seconds` at the current count; the count for the next ones."""
+        if self._timing is not None:
+            seen = self._seen.setdefault(self._timing, [0, 0.0])
+            seen[0] += updates
+            seen[1] += seconds
+            if seen[0] >= self.updates:
+                self._timing = self._queue.pop(0) if self._queue else None
+                if self._timing is None:
+                    self._decide()
+        elif len(self.candidates) > 1 and self.clock() >= self._next_at:
+            # the current count last, so a switch back costs nothing when it stays
+            self._queue = [n for n in self.candidates if n != self.current] + [self.current]
+            self._seen = {}
+            self._timing = self._queue.pop(0)
+        n = self._timing if self._timing is not None else self.current
+        if torch.get_num_threads() != n:
+            torch.set_num_threads(n)
+        return n
+
+    def _decide(self) -> None:
+        per_update = {n: s / u for n, (u, s) in self._seen.items()}
+        best = min(per_update, key=per_update.get)
+        if best != self.current:
+            log.info("torch threads: %d, was %d (re-timed on the run's updates: %s)", best, self.current,
+                     ", ".join(f"{k} thread{'s' if k > 1 else ''} {1000 * t:.2f} ms" for k, t in sorted(per_update.items())))
+        self.current = best
+        self._next_at = self.clock() + self.every_s

@@ -12,12 +12,14 @@ itself (`state`, `restore`): the checkpoint's "sac" and "gasil" sections.
 from __future__ import annotations
 
 import logging
+import time
 import warnings
 from typing import Any
 
 import numpy as np
 import torch
 
+from silcr import openmp_wait
 from silcr.common import protocol as P
 from silcr.common.algorithms import algorithm
 from silcr.common.config import Config
@@ -27,7 +29,7 @@ from . import denormals
 from .gasil import Gasil, GasilHyper
 from .sac import Sac, SacHyper, SacState, as_floats
 from .sac_discrete import DiscreteSac, DiscreteSacHyper
-from .threads import choose_threads, usable_cores
+from .threads import Retimer, choose_threads, usable_cores
 
 log = logging.getLogger("learner")
 
@@ -76,6 +78,7 @@ class Update:
         self.cfg = cfg
         self.device = pick_device(cfg.device)
         self.spec = spec
+        self.retimer: Retimer | None = None  # set when the threads are chosen by timing
         self.torch_threads = self._set_threads(spec)
         torch.manual_seed(cfg.seed)  # after the thread probe, so that it changes nothing the run draws
         self.sac = self._new_sac()
@@ -109,8 +112,11 @@ class Update:
         with denormals.flushed(self.device, not self.cfg.keep_denormals):  # timed as the update will run (denormals.py)
             best, times = choose_threads(lambda: probe.update(*batch), cores)
         torch.set_num_threads(best)
-        log.info("torch threads: %d (timed the update: %s; --torch-threads N sets it)", best,
-                 ", ".join(f"{k} thread{'s' if k > 1 else ''} {1000 * t:.2f} ms" for k, t in times.items()))
+        self.retimer = Retimer(sorted(times), best)
+        log.info("torch threads: %d (timed the update: %s; idle threads %s; re-timed every %.0f s on the run's "
+                 "updates; --torch-threads N sets it)", best,
+                 ", ".join(f"{k} thread{'s' if k > 1 else ''} {1000 * t:.2f} ms" for k, t in times.items()),
+                 openmp_wait(), self.retimer.every_s)
         return best
 
     def sample_request(self) -> P.SampleRequest:
@@ -132,6 +138,7 @@ class Update:
         batch = reply.batch.map(lambda a: to_tensor(a, self.device))
         disc = reply.disc.map(lambda a: to_tensor(a, self.device)) if reply.disc is not None else None
         term, trunc = batch.terminated.float(), batch.truncated.float()
+        t0 = time.perf_counter()
         with denormals.flushed(self.device, not self.cfg.keep_denormals):  # a fifth of a CPU update's time otherwise (denormals.py)
             for b in range(n):
                 s = slice(b * size, (b + 1) * size)
@@ -145,6 +152,8 @@ class Update:
                 self._last = self.sac.update(batch.obs[s], batch.actions[s], rewards, batch.next_obs[s], term[s], trunc[s])
                 if self.gasil is not None:
                     self._last |= self._disc_last | {"gasil_reward_mean": r_d_mean}
+        if self.retimer is not None:
+            self.torch_threads = self.retimer.observe(n, time.perf_counter() - t0)
         return n
 
     # -- reporting -------------------------------------------------------------------

@@ -16,6 +16,7 @@ defaults below before numpy or torch is loaded.
 """
 
 import os
+import sys
 
 __version__ = "0.3.0"
 
@@ -36,3 +37,32 @@ THREAD_DEFAULTS = {"OPENBLAS_NUM_THREADS": "1", "OMP_WAIT_POLICY": "PASSIVE"}
 ENV_BEFORE_DEFAULTS = {name: os.environ.get(name) for name in THREAD_DEFAULTS}
 for _name, _value in THREAD_DEFAULTS.items():
     os.environ.setdefault(_name, _value)
+
+#: `silcr train --single-process` has no silcr process beside it, so its idle OpenMP threads may spin briefly
+#: before they sleep; sleeping at once makes every kernel of a 2-thread update wait for a wake-up. Measured on
+#: 2 cores, Hopper-v5, in the loop (docs/performance.md): an 800-400 update took 15.6 ms at 2 sleeping threads,
+#: 14.5 at 1 and 9.7 at 2 spinning 20,000 rounds (8.8 at libgomp's own default, which spins about 15 times
+#: longer and, with a second such run on the cores, made each 11 times slower instead of 3.4; the learner
+#: re-times its threads during the run and drops to one when another process takes a core: learner/threads.py).
+SINGLE_PROCESS_SPIN = {"GOMP_SPINCOUNT": "20000"}
+
+
+def spin_in_single_process() -> str:
+    """Let OpenMP threads spin briefly (`SINGLE_PROCESS_SPIN`) in place of silcr's PASSIVE default; how they wait.
+
+    Only before torch loads, and only where silcr set the policy: a user's OMP_WAIT_POLICY or
+    GOMP_SPINCOUNT, or one inherited from a silcr parent such as a sweep's (its cells share the
+    machine), wins.
+    """
+    if "torch" not in sys.modules and ENV_BEFORE_DEFAULTS["OMP_WAIT_POLICY"] is None and "GOMP_SPINCOUNT" not in os.environ:
+        os.environ.pop("OMP_WAIT_POLICY", None)
+        os.environ.update(SINGLE_PROCESS_SPIN)
+    return openmp_wait()
+
+
+def openmp_wait() -> str:
+    """How this process's OpenMP threads wait when idle, from the environment libgomp read (for the run's log)."""
+    if "GOMP_SPINCOUNT" in os.environ:
+        return f"spin {os.environ['GOMP_SPINCOUNT']} rounds, then sleep"
+    return {"PASSIVE": "sleep at once", "ACTIVE": "spin"}.get(os.environ.get("OMP_WAIT_POLICY", "").upper(),
+                                                         "libgomp's default (spin a while, then sleep)")

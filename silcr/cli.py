@@ -358,6 +358,9 @@ def _main(argv: list[str] | None) -> int:
                                                         f"pick another port")
             with hold(cfg.run_dir):  # for the run's life: one run directory, one run
                 if cfg.single_process:
+                    from silcr import spin_in_single_process
+
+                    spin_in_single_process()  # before torch loads: it owns the cores (silcr/__init__.py)
                     from silcr.deploy.single_process import run_single_process
 
                     return run_single_process(cfg)

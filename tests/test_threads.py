@@ -7,6 +7,7 @@ import logging
 import pytest
 import torch
 
+from silcr.common import protocol as P
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.learner import threads
@@ -70,3 +71,55 @@ def test_the_probe_changes_nothing_the_run_draws():
     pinned = Update(Config(run="t", env=spec.env_id, hidden=[32, 32], torch_threads=1, device="cpu"), spec)
     for a, b in zip(chosen.sac.actor_arrays().values(), pinned.sac.actor_arrays().values()):
         assert (a == b).all()
+
+
+def test_the_retimer_follows_the_machine_on_the_runs_own_updates(caplog):
+    """A count that became slower (another process took a core) is dropped within one re-check, and taken back later."""
+    now = [0.0]
+    ms = {1: 15.0, 2: 9.0}  # per update, as measured at 800-400 on 2 cores alone
+    retimer = threads.Retimer([1, 2], current=2, every_s=60.0, updates=10, clock=lambda: now[0])
+
+    def run(updates: int) -> list[int]:
+        counts, n = [], retimer.current
+        for _ in range(updates):
+            counts.append(n)
+            now[0] += ms[n] / 1000
+            n = retimer.observe(1, ms[n] / 1000)
+        return counts
+
+    assert set(run(100)) == {2}  # before the first minute: the count chosen at start, untouched
+    with caplog.at_level(logging.INFO, logger="learner"):
+        now[0] = 61.0
+        counts = run(30)
+        assert counts[1:21] == [1] * 10 + [2] * 10  # each count timed on 10 real updates, the current one last
+        assert retimer.current == 2 and not caplog.records  # unchanged: nothing logged
+        ms[2] = 54.0  # a second run now shares the cores
+        now[0] += 61.0
+        run(30)
+        assert retimer.current == 1 and torch.get_num_threads() == 1
+        assert caplog.records[-1].getMessage().startswith("torch threads: 1, was 2 (re-timed on the run's updates: "
+                                                          "1 thread 15.00 ms, 2 threads 54.00 ms")
+        ms[2] = 9.0  # and it leaves
+        now[0] += 61.0
+        run(30)
+        assert retimer.current == 2 and torch.get_num_threads() == 2
+    torch.set_num_threads(1)
+
+
+def test_the_update_reports_each_reply_to_its_retimer(monkeypatch):
+    spec = EnvSpec.of("InvertedPendulum-v5")
+    monkeypatch.setattr("silcr.learner.update.usable_cores", lambda: 2)
+    monkeypatch.setattr(threads, "time_per_update", lambda step, n, u: 1.0 if n == 1 else 2.0)
+    update = Update(Config(run="t", env=spec.env_id, hidden=[8, 8], batch_size=4, device="cpu"), spec)
+    seen = []
+    monkeypatch.setattr(update.retimer, "observe", lambda n, s: (seen.append((n, s)), 1)[1])
+    batch = P.Batch.empty(4, spec.obs_dim, spec.act_dim)
+    batch.obs[:] = batch.next_obs[:] = 0.1
+    batch.actions[:] = 0.0
+    batch.rewards[:] = 1.0
+    batch.terminated[:] = batch.truncated[:] = 0
+    batch.policy_version[:] = 0
+    update.train(P.BatchReply("ok", {"batches": 2, "batch_size": 2}, batch), 0)
+    assert len(seen) == 1 and seen[0][0] == 2 and seen[0][1] > 0  # both updates of the reply, and their time
+    pinned = Update(Config(run="t", env=spec.env_id, hidden=[8, 8], batch_size=4, device="cpu", torch_threads=1), spec)
+    assert pinned.retimer is None  # --torch-threads N: never re-timed
