@@ -122,7 +122,7 @@ class Config:
     checkpoint_interval: int = _opt(10_000, {"train", "learner"}, "checkpoint every N updates (and at the end)")
     resume: bool = _opt(False, SERVICE, "continue from the checkpoints in <run dir>/checkpoints/ when they exist (learner: networks, optimizers, alpha, counters; buffer: D_O, D_E, counters)")
     device: str = _opt("auto", {"train", "learner"}, "torch device for the learner (auto: CUDA when present)", choices=DEVICES)
-    torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: the faster of 1 and all cores, timed at start)")
+    torch_threads: int = _opt(0, {"train", "learner"}, "torch CPU threads for the learner (0: the faster of 1 and all cores, timed at start and again every minute)")
     keep_denormals: bool = _opt(False, {"train", "learner"}, "compute the CPU update on denormal floats instead of flushing "
                                 "them to zero: up to a fifth slower, and the same results to the last digit as runs made "
                                 "before silcr 0.4 (docs/performance.md, \"Against Stable-Baselines3\")")

@@ -5,8 +5,9 @@ one thread: the threads sleep between the update's many small kernels, and wakin
 costs more than the second core gives (measured: 17 s of system time in an 87 s run, and
 62 s with one thread; issue 21). At 800-400 or with more cores the balance can tip the
 other way. So the learner times a few updates of a throwaway copy of its networks at one
-thread and at the cores it may use, alternating, and keeps the faster. `--torch-threads N`
-skips this and uses N.
+thread and at the cores it may use, alternating, and keeps the faster; during the run it
+times them again every minute on its own updates (`Retimer`), since another process that
+takes a core turns the choice around. `--torch-threads N` skips both and uses N.
 """
 
 from __future__ import annotations
