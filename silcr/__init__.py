@@ -50,13 +50,14 @@ SINGLE_PROCESS_SPIN = {"GOMP_SPINCOUNT": "20000"}
 def spin_in_single_process() -> str:
     """Let OpenMP threads spin briefly (`SINGLE_PROCESS_SPIN`) in place of silcr's PASSIVE default; how they wait.
 
-    Only before torch loads, and only where silcr set the policy: a user's OMP_WAIT_POLICY or
-    GOMP_SPINCOUNT, or one inherited from a silcr parent such as a sweep's (its cells share the
-    machine), wins.
+    Only before torch loads, and only where silcr set the policy: a user's OMP_WAIT_POLICY, or
+    one inherited from a silcr parent such as a sweep's (its cells share the machine), wins,
+    and so does a user's GOMP_SPINCOUNT.
     """
-    if "torch" not in sys.modules and ENV_BEFORE_DEFAULTS["OMP_WAIT_POLICY"] is None and "GOMP_SPINCOUNT" not in os.environ:
+    if "torch" not in sys.modules and ENV_BEFORE_DEFAULTS["OMP_WAIT_POLICY"] is None:
         os.environ.pop("OMP_WAIT_POLICY", None)
-        os.environ.update(SINGLE_PROCESS_SPIN)
+        for name, value in SINGLE_PROCESS_SPIN.items():
+            os.environ.setdefault(name, value)
     return openmp_wait()
 
 
