@@ -17,6 +17,8 @@ from typing import Any, Callable
 
 import zenoh
 
+from silcr.common import protocol as P
+
 REPO = Path(__file__).resolve().parent.parent
 
 
@@ -175,3 +177,14 @@ class LatestJson:
     def get(self, key: str) -> dict | None:
         with self._lock:
             return self.latest.get(key)
+
+
+def two_batch_reply(obs_dim: int, act_dim: int) -> P.BatchReply:
+    """A buffer reply of 2 batches of 2 plain rows, for driving `Update.train` directly."""
+    batch = P.Batch.empty(4, obs_dim, act_dim)
+    batch.obs[:] = batch.next_obs[:] = 0.1
+    batch.actions[:] = 0.0
+    batch.rewards[:] = 1.0
+    batch.terminated[:] = batch.truncated[:] = 0
+    batch.policy_version[:] = 0
+    return P.BatchReply("ok", {"batches": 2, "batch_size": 2}, batch)

@@ -6,11 +6,11 @@ import numpy as np
 import pytest
 import torch
 
-from silcr.common import protocol as P
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.learner import denormals
 from silcr.learner.update import Update
+from tests.helpers import two_batch_reply
 
 DENORMAL = 1e-39  # below float32's smallest normal number, 1.2e-38
 
@@ -68,13 +68,7 @@ def test_the_learners_update_runs_with_denormals_flushed_unless_kept(monkeypatch
     seen = []
     real = update.sac.update
     monkeypatch.setattr(update.sac, "update", lambda *a: (seen.append(survives()), real(*a))[1])
-    batch = P.Batch.empty(4, spec.obs_dim, spec.act_dim)
-    batch.obs[:] = batch.next_obs[:] = 0.1
-    batch.actions[:] = 0.0
-    batch.rewards[:] = 1.0
-    batch.terminated[:] = batch.truncated[:] = 0
-    batch.policy_version[:] = 0
-    assert update.train(P.BatchReply("ok", {"batches": 2, "batch_size": 2}, batch), 0) == 2
+    assert update.train(two_batch_reply(spec.obs_dim, spec.act_dim), 0) == 2
     assert seen == [keep, keep]
     assert survives()  # and the mode is back to the default after the reply
     assert np.isfinite(update.stats()["critic_loss"])

@@ -7,11 +7,11 @@ import logging
 import pytest
 import torch
 
-from silcr.common import protocol as P
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.learner import threads
 from silcr.learner.update import Update
+from tests.helpers import two_batch_reply
 
 
 @pytest.fixture(autouse=True)
@@ -113,13 +113,7 @@ def test_the_update_reports_each_reply_to_its_retimer(monkeypatch):
     update = Update(Config(run="t", env=spec.env_id, hidden=[8, 8], batch_size=4, device="cpu"), spec)
     seen = []
     monkeypatch.setattr(update.retimer, "observe", lambda n, s: (seen.append((n, s)), 1)[1])
-    batch = P.Batch.empty(4, spec.obs_dim, spec.act_dim)
-    batch.obs[:] = batch.next_obs[:] = 0.1
-    batch.actions[:] = 0.0
-    batch.rewards[:] = 1.0
-    batch.terminated[:] = batch.truncated[:] = 0
-    batch.policy_version[:] = 0
-    update.train(P.BatchReply("ok", {"batches": 2, "batch_size": 2}, batch), 0)
+    update.train(two_batch_reply(spec.obs_dim, spec.act_dim), 0)
     assert len(seen) == 1 and seen[0][0] == 2 and seen[0][1] > 0  # both updates of the reply, and their time
     pinned = Update(Config(run="t", env=spec.env_id, hidden=[8, 8], batch_size=4, device="cpu", torch_threads=1), spec)
     assert pinned.retimer is None  # --torch-threads N: never re-timed
