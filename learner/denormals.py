@@ -75,7 +75,9 @@ def _loaded_openmp() -> str | None:
             paths = sorted({line.split()[-1] for line in maps if ".so" in line})
     except OSError:
         return None
-    return next((p for p in paths if os.path.basename(p).startswith(OPENMP_RUNTIMES)), None)
+    found = [p for p in paths if os.path.basename(p).startswith(OPENMP_RUNTIMES)]
+    # torch's own copy first: a second runtime loaded by another library keeps a pool of its own
+    return min(found, key=lambda p: not p.startswith(os.path.dirname(torch.__file__)), default=None)
 
 
 @functools.cache

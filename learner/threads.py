@@ -69,7 +69,7 @@ class Retimer:
     against 15 ms at 1 (docs/performance.md). So now and then the next `updates` updates run
     at each candidate count in turn (they are real updates, counted as usual), and the faster
     count is kept; a change is logged. It costs the slower count's extra time for `updates`
-    updates a minute: about 1% when the choice is right.
+    updates a minute: about 0.1% when the choice is right (10 x 5 ms at 800-400 on 2 cores).
     """
 
     def __init__(self, candidates: list[int], current: int, every_s: float = 60.0, updates: int = 10,
