@@ -259,6 +259,11 @@ def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: i
                 if r.proc.poll() is None:
                     os.killpg(r.proc.pid, signal.SIGKILL)
                 r.proc.wait()
+        # The cells are stopped: a later signal has nothing left to stop, and one that came during the
+        # interpreter's exit killed the sweep (exit -15, not 130) once the handlers were reset; ignored
+        # handlers are not reset.
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         for r in running:
             r.log.close()
         return 130
