@@ -15,8 +15,9 @@ whole process tree) as ratios to SB3's of the same round: min, median and max ov
 Each program reports the updates it made, so the table also shows that the work was the same.
 
 For silcr's programs the bench also reads the learner's log: the torch threads it chose and how
-long its updates took from the first to the last. Each round then times the same update alone in
-this process at those threads (the update's floor on this machine, in the same run), and the
+long its updates took from the first to the last. Each round then times the same update alone
+at those threads, in a fresh process whose OpenMP threads wait as the program's do (the update's
+floor on this machine, in the same run), and the
 table gives each program's learner rate as a share of that floor: 1 means the learner trained as
 fast as the update alone can run, and a lower share is time lost to waits, to the processes
 beside it and to the data path.
@@ -202,7 +203,7 @@ print(floor_ms(PeerConfig(**cfg | {"hidden": tuple(cfg["hidden"])}), int(sys.arg
 def program_floor_ms(cfg: PeerConfig, program: str, threads: int) -> float:
     """`floor_ms` in a fresh process whose OpenMP threads wait as `program`'s learner's do (a pool's policy is fixed at load)."""
     out = subprocess.run([sys.executable, "-c", FLOOR_SCRIPT, json.dumps(asdict(cfg)), program, str(threads)],
-                         env=_peer_env(), capture_output=True, text=True, check=True).stdout
+                         env=_peer_env(), capture_output=True, text=True, timeout=600, check=True).stdout
     return float(out.strip().splitlines()[-1])
 
 

@@ -77,26 +77,24 @@ class Retimer:
         self.candidates, self.current = candidates, current
         self.every_s, self.updates, self.clock = every_s, updates, clock
         self._next_at = clock() + every_s
-        self._queue: list[int] = []  # counts still to time in this re-check
-        self._timing: int | None = None
+        self._queue: list[int] = []  # counts still to time in this re-check; the first is the one in use
         self._seen: dict[int, list[float]] = {}  # count -> [updates, seconds]
 
     def observe(self, updates: int, seconds: float) -> int:
         """Note `updates` updates that took `seconds` at the current count; the count for the next ones."""
-        if self._timing is not None:
-            seen = self._seen.setdefault(self._timing, [0, 0.0])
+        if self._queue:
+            seen = self._seen.setdefault(self._queue[0], [0, 0.0])
             seen[0] += updates
             seen[1] += seconds
             if seen[0] >= self.updates:
-                self._timing = self._queue.pop(0) if self._queue else None
-                if self._timing is None:
+                self._queue.pop(0)
+                if not self._queue:
                     self._decide()
         elif len(self.candidates) > 1 and self.clock() >= self._next_at:
             # the current count last, so a switch back costs nothing when it stays
             self._queue = [n for n in self.candidates if n != self.current] + [self.current]
             self._seen = {}
-            self._timing = self._queue.pop(0)
-        n = self._timing if self._timing is not None else self.current
+        n = self._queue[0] if self._queue else self.current
         if torch.get_num_threads() != n:
             torch.set_num_threads(n)
         return n

@@ -167,6 +167,27 @@ def test_single_process_threads_spin_briefly_unless_the_environment_says_otherwi
     assert out.strip().split("|") == expect
 
 
+@pytest.mark.parametrize("policy, said", [(None, "idle threads spin 20000 rounds, then sleep"),
+                                          ("PASSIVE", "idle threads sleep at once")])
+def test_silcr_train_single_process_applies_the_spin_and_logs_it(tmp_path, policy, said):
+    """The command itself, not only the function: from a user's shell it spins; under a sweep's PASSIVE it does not."""
+    import os
+
+    from silcr.learner.threads import usable_cores
+
+    if usable_cores() < 2:
+        pytest.skip("one core: no threads to time, so no log line of them")
+    env = {k: v for k, v in os.environ.items() if k not in ("OMP_WAIT_POLICY", "GOMP_SPINCOUNT")}
+    env |= {"OMP_WAIT_POLICY": policy} if policy else {}
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "train", "--single-process", "--run", "s", "--runs-dir",
+                        str(tmp_path), "--env", "InvertedPendulum-v5", "--hidden", "16", "16", "--learning-starts",
+                        "200", "--total-steps", "300", "--eval-episodes", "0"],
+                       capture_output=True, text=True, env=env, timeout=300, cwd=tmp_path)
+    assert r.returncode == 0, r.stdout + r.stderr
+    log = (tmp_path / "s" / "logs" / "single-process.log").read_text()
+    assert said in log, log
+
+
 def test_output_cut_short_by_a_pipe_ends_quietly():
     """`silcr sweep ... --dry-run | head -1`: a closed pipe printed a BrokenPipeError traceback."""
     r = subprocess.run(f"{sys.executable} -m silcr.cli sweep experiments/paper.toml --seeds 0-999 --dry-run | head -1",
