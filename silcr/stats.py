@@ -19,7 +19,9 @@ or the `stats` extra).
 
 from __future__ import annotations
 
+import warnings
 from collections import defaultdict
+from contextlib import contextmanager
 from pathlib import Path
 
 import numpy as np
@@ -39,8 +41,32 @@ def _rliable():
     return rly, metrics
 
 
-def _ci(estimate: float, interval: np.ndarray) -> str:
+@contextmanager
+def _quiet_bootstrap():
+    """rliable hands `random_state` to arch's bootstrap, which warns on every call that the
+    argument is deprecated: a line per estimate on the user's screen that says nothing about
+    their runs. The draws are the same either way."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", category=FutureWarning, module=r"arch\.")
+        yield
+
+
+def _ci(estimate: float, interval: np.ndarray, runs: int = 2) -> str:
+    """A bootstrap over one run draws that run every time, so its "interval" is a point:
+    written as the one value it is, not as an interval that claims certainty."""
+    if runs < 2:
+        return f"{estimate:,.2f} (one seed: no interval)"
     return f"{estimate:,.2f} [{interval[0]:,.2f}, {interval[1]:,.2f}]"
+
+
+def _pair_ci(estimate: float, interval: np.ndarray, runs: tuple[int, int], names: tuple[str, str]) -> str:
+    """P(X > Y) with one side a single seed: the interval then resamples the other side only."""
+    text = _ci(estimate, interval, max(runs))
+    single = [name for name, n in zip(names, runs) if n < 2]
+    if single and max(runs) >= 2:
+        other = names[1 - names.index(single[0])]
+        text += f" ({single[0]}: one seed; the interval resamples {other}'s runs only)"
+    return text
 
 
 def _final(runs: list[RunCurve]) -> np.ndarray:
@@ -54,6 +80,12 @@ def default_reference(labels: set[str]) -> str | None:
 def rliable_report(runs: list[RunCurve], compare: str | None = None, reference: str | None = None,
                    reps: int = REPS, seed: int = 0, figure: Path | None = None) -> str:
     """The Markdown report (and, with `figure`, an interval plot) described in the module docstring."""
+    with _quiet_bootstrap():
+        return _report(runs, compare, reference, reps, seed, figure)
+
+
+def _report(runs: list[RunCurve], compare: str | None, reference: str | None, reps: int, seed: int,
+            figure: Path | None) -> str:
     rly, metrics = _rliable()
     groups = group(runs)
     envs = sorted(groups)
@@ -69,7 +101,7 @@ def rliable_report(runs: list[RunCurve], compare: str | None = None, reference: 
             point, interval = rly.get_interval_estimates({label: scores[:, None]}, iqm, reps=reps,
                                                          random_state=rng())
             per_task[env][label] = (float(point[label][0]), interval[label][:, 0])
-            lines.append(f"| {env} | {label} | {len(scores)} | {_ci(*per_task[env][label])} |")
+            lines.append(f"| {env} | {label} | {len(scores)} | {_ci(*per_task[env][label], len(scores))} |")
 
     reference = reference or default_reference(set(labels))
     complete = [label for label in labels if all(label in groups[env] for env in envs)]
@@ -89,7 +121,8 @@ def rliable_report(runs: list[RunCurve], compare: str | None = None, reference: 
             normalised[label] = np.stack([c[:n] for c in columns], axis=1)
         points, intervals = rly.get_interval_estimates(normalised, iqm, reps=reps, random_state=rng())
         for label in complete:
-            lines.append(f"| {label} | {normalised[label].shape[0]} | {_ci(points[label][0], intervals[label][:, 0])} |")
+            runs_per_task = normalised[label].shape[0]
+            lines.append(f"| {label} | {runs_per_task} | {_ci(points[label][0], intervals[label][:, 0], runs_per_task)} |")
     elif reference is not None:
         lines += ["", f"(No aggregate over tasks: the reference {reference} is missing on some task.)"]
 
@@ -107,15 +140,18 @@ def rliable_report(runs: list[RunCurve], compare: str | None = None, reference: 
                 pair = {other: (_final(groups[env][compare])[:, None], _final(groups[env][other])[:, None])}
                 points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps,
                                                                random_state=rng())
-                lines.append(f"| {env} | {other} | {_ci(float(points[other]), intervals[other][:, 0])} |")
+                sizes = (len(pair[other][0]), len(pair[other][1]))
+                lines.append(f"| {env} | {other} | "
+                             f"{_pair_ci(float(points[other]), intervals[other][:, 0], sizes, (compare, other))} |")
         if compare in normalised:
             for other in others:
                 if other in normalised:
                     pair = {other: (normalised[compare], normalised[other])}
                     points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement,
                                                                    reps=reps, random_state=rng())
+                    sizes = (len(pair[other][0]), len(pair[other][1]))
                     lines.append(f"| all {len(envs)} tasks | {other} | "
-                                 f"{_ci(float(points[other]), intervals[other][:, 0])} |")
+                                 f"{_pair_ci(float(points[other]), intervals[other][:, 0], sizes, (compare, other))} |")
     if figure is not None:
         _interval_figure(per_task, figure)
     return "\n".join(lines) + "\n"
