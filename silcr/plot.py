@@ -229,25 +229,33 @@ def plot_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     out = Path(args.out)
     if out.suffix not in (".png", ".svg", ".pdf"):
         parser.error(f"-o {args.out}: use a .png, .svg or .pdf file name")
-    metric = "return" if args.metric == "eval_return" else args.metric
-    plot(runs, out, args.expert, args.title, "evaluation return (dense)" if metric == "return" else args.metric, args.logy)
-    table = summary_markdown(runs, metric)
+    # Every option is checked before the first file is written.
     if args.stats == "rliable":
-        from silcr.stats import rliable_report
+        from silcr.stats import require_rliable
 
+        try:
+            require_rliable()
+        except ValueError as e:
+            parser.error(str(e))
         labels = {r.algo for r in runs}
         if args.bootstrap_reps < 100:
             parser.error(f"--bootstrap-reps must be >= 100, got {args.bootstrap_reps}")
         for option, value in (("--compare", args.compare), ("--reference", args.reference)):
             if value is not None and value not in labels:
                 parser.error(f"{option} {value!r}: no such group (groups: {', '.join(sorted(labels))})")
+    elif args.compare or args.reference:
+        parser.error("--compare and --reference go with --stats rliable")
+    metric = "return" if args.metric == "eval_return" else args.metric
+    plot(runs, out, args.expert, args.title, "evaluation return (dense)" if metric == "return" else args.metric, args.logy)
+    table = summary_markdown(runs, metric)
+    if args.stats == "rliable":
+        from silcr.stats import rliable_report
+
         try:
             table += "\n" + rliable_report(runs, args.compare, args.reference, args.bootstrap_reps,
                                             figure=out.with_name(out.stem + "-stats.png"))
         except ValueError as e:
             parser.error(str(e))
-    elif args.compare or args.reference:
-        parser.error("--compare and --reference go with --stats rliable")
     print(table, end="")
     if args.table:
         Path(args.table).write_text(table)

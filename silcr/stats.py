@@ -32,7 +32,7 @@ from silcr.plot import RunCurve, group
 REPS = 2000
 
 
-def _rliable():
+def require_rliable():
     try:
         from rliable import library as rly
         from rliable import metrics
@@ -86,7 +86,7 @@ def rliable_report(runs: list[RunCurve], compare: str | None = None, reference: 
 
 def _report(runs: list[RunCurve], compare: str | None, reference: str | None, reps: int, seed: int,
             figure: Path | None) -> str:
-    rly, metrics = _rliable()
+    rly, metrics = require_rliable()
     groups = group(runs)
     envs = sorted(groups)
     labels = sorted({label for env in envs for label in groups[env]})

@@ -209,9 +209,13 @@ def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probabi
     assert "| Hopper-v5 | ircr | 1.00 [1.00, 1.00] |" in table  # every silcr run beats every ircr run
     assert "| all 2 tasks | ircr | 1.00 [1.00, 1.00] |" in table
     assert (tmp_path / "fig-stats.png").stat().st_size > 1000
-    bad = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(out), "--stats", "rliable",
-                          "--compare", "nope"], capture_output=True, text=True, cwd=REPO, timeout=120)
-    assert bad.returncode == 2 and "--compare 'nope': no such group" in bad.stderr and "Traceback" not in bad.stderr
+    for option, message in ((["--compare", "nope"], "--compare 'nope': no such group"),
+                            (["--bootstrap-reps", "10"], "--bootstrap-reps must be >= 100")):
+        fresh = tmp_path / "bad" / "fig.png"
+        bad = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(fresh), "--stats",
+                              "rliable", *option], capture_output=True, text=True, cwd=REPO, timeout=120)
+        assert bad.returncode == 2 and message in bad.stderr and "Traceback" not in bad.stderr
+        assert not (tmp_path / "bad").exists() or not any((tmp_path / "bad").iterdir())  # refused before any file
 
 
 def test_the_closing_line_gives_the_final_evaluation_with_digits_that_matter(tmp_path):
