@@ -40,6 +40,21 @@ class RunCurve:
     config: dict = field(default_factory=dict)
     q_watched: bool = False  # progress.csv has the divergence counter (silcr 0.2 and later)
     first_past_q_bound: float | None = None  # env steps of the first row where q_bound_exceeded > 0
+    wall_s: float | None = None  # the run's processes' wall time, every resumed stretch added
+
+
+def wall_seconds(rows: list[dict]) -> float | None:
+    """progress.csv's `time` counts from each start of the run, so a resume starts it again
+    from zero: the run's wall time is the sum of each stretch's last value. Rows that a resume
+    wrote again count too, as their compute was spent."""
+    try:
+        times = [float(r["time"]) for r in rows if r.get("time") not in (None, "")]
+    except ValueError:
+        return None
+    if not times:
+        return None
+    ends = [t for t, following in zip(times, times[1:]) if following < t]
+    return sum(ends) + times[-1]
 
 
 #: Config keys that never tell curves apart: they name or place a run, say how it was
@@ -89,7 +104,7 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
         label += f" (M={cfg['expert_capacity']:.0e})".replace("e+0", "e")  # the M ablation: one curve per M
     past = [float(r["env_steps"]) for r in all_rows if (r.get("q_bound_exceeded") or "0") not in ("", "0")]
     return RunCurve(path, cfg.get("env", "?"), label, int(cfg.get("seed", 0)), steps, values, cfg,
-                    "q_bound_exceeded" in all_rows[0], past[0] if past else None)
+                    "q_bound_exceeded" in all_rows[0], past[0] if past else None, wall_seconds(all_rows))
 
 
 def sweep_variant(run: RunCurve) -> str | None:
@@ -197,11 +212,13 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
 
 
 def summary_markdown(runs: list[RunCurve], metric: str = "return") -> str:
-    """Final and best value per (env, label): mean +- std over seeds; and whether the critics passed q_bound."""
+    """Final and best value per (env, label): mean +- std over seeds; whether the critics passed q_bound;
+    and the wall time the runs took, per group and in all."""
     watched = any(r.q_watched for r in runs)
+    timed = all(r.wall_s is not None for r in runs)
     head = f"| env | algo | seeds | env steps | final {metric} | best {metric} |"
-    lines = [head + (" critics past q_bound (first at env steps) |" if watched else ""),
-             "|---|---|---|---|---|---|" + ("---|" if watched else "")]
+    lines = [head + (" critics past q_bound (first at env steps) |" if watched else "") + (" wall time, h (seeds summed) |" if timed else ""),
+             "|---|---|---|---|---|---|" + ("---|" if watched else "") + ("---|" if timed else "")]
     groups = group(runs)
     for env in sorted(groups):
         for algo in sorted(groups[env]):
@@ -214,7 +231,13 @@ def summary_markdown(runs: list[RunCurve], metric: str = "return") -> str:
             if watched:
                 firsts = sorted(int(r.first_past_q_bound) for r in seeds if r.first_past_q_bound is not None)
                 line += f" {len(firsts)}/{len(seeds)}" + (f" ({', '.join(f'{f:,}' for f in firsts)})" if firsts else "") + " |"
+            if timed:
+                line += f" {sum(r.wall_s for r in seeds) / 3600:.2f} |"
             lines.append(line)
+    if timed:
+        lines += ["", f"Wall time: {sum(r.wall_s for r in runs) / 3600:.2f} h for the {len(runs)} runs together "
+                      "(each run's processes from start to end, every resumed stretch added and any pause included; "
+                      "a `--single-process` run with one torch thread keeps about one core busy)."]
     return "\n".join(lines) + "\n"
 
 

@@ -45,7 +45,7 @@ def test_plot_draws_one_panel_per_task_and_one_curve_per_algorithm(tmp_path):
     assert (tmp_path / "out" / "fig.png").stat().st_size > 1000
     assert (tmp_path / "out" / "fig.svg").exists()
     table = summary_markdown(runs)
-    assert table.count("\n") == 2 + 4
+    assert table.count("\n") == 2 + 4 + 2  # head, 4 groups, a blank line and the wall time in all
     assert "| Hopper-v5 | silcr | 2 | 2,000 | 22.5 ± 2.5 | 22.5 ± 2.5 |" in table
 
 
@@ -180,6 +180,21 @@ def test_a_resumed_run_plots_the_rows_written_after_the_resume(tmp_path):
                   [1, 2, 3, 99, 4, 5, 6, 7])
     run = load_run(d)
     assert list(run.steps) == [0, 1000, 2000, 2500, 3000, 4000, 4000] and list(run.returns) == [1, 2, 3, 4, 5, 6, 7]
+
+
+def test_the_table_adds_each_resumed_stretch_to_a_run_s_wall_time(tmp_path):
+    """progress.csv's time restarts at zero when a run resumes: 1,800 s, then 900 s more after the
+    resume (rows it wrote again included) is 0.75 h, not the last row's 0.25 h."""
+    from silcr.plot import load_run, summary_markdown
+
+    d = _fake_run(tmp_path, "Hopper-v5", "silcr", 0, [0, 1000, 2000, 1500, 3000], [1, 2, 3, 4, 5])
+    text = (d / "progress.csv").read_text().splitlines()
+    times = [600, 1200, 1800, 300, 900]
+    (d / "progress.csv").write_text("\n".join([text[0]] + [f"{t}{row[1:]}" for t, row in zip(times, text[1:])]) + "\n")
+    run = load_run(d)
+    assert run.wall_s == 2700
+    table = summary_markdown([run, load_run(_fake_run(tmp_path, "Hopper-v5", "silcr", 1, [0, 1000], [1, 2]))])
+    assert "| 0.75 |" in table and "Wall time: 0.75 h for the 2 runs together" in table
 
 
 def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probability_of_improvement(tmp_path):
