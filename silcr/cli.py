@@ -70,6 +70,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
                            "is 1 in the normalisation over tasks (default: the sac-dense group)")
             p.add_argument("--bootstrap-reps", type=int, default=2000, metavar="N", help="with --stats: bootstrap "
                            "replications per interval (default: 2000)")
+            p.add_argument("--final-evals", type=int, default=1, metavar="K", help="a run's final return is the mean "
+                           "of its last K evaluations, in the table and the statistics (default: 1, the last; a few "
+                           "smooth out a noisy evaluation)")
             continue
         if role == "eval":
             p.add_argument("checkpoint", help="a learner checkpoint (runs/<run>/checkpoints/learner.pt)")

@@ -211,19 +211,28 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
     return fig
 
 
-def summary_markdown(runs: list[RunCurve], metric: str = "return") -> str:
+def final_value(run: RunCurve, evals: int = 1) -> float:
+    """A run's final value: the mean of its last `evals` rows (1: the last evaluation)."""
+    return float(np.mean(run.returns[-evals:]))
+
+
+def final_name(metric: str, evals: int) -> str:
+    return f"final {metric}" if evals == 1 else f"final {metric} (mean of the last {evals} evaluations)"
+
+
+def summary_markdown(runs: list[RunCurve], metric: str = "return", final_evals: int = 1) -> str:
     """Final and best value per (env, label): mean +- std over seeds; whether the critics passed q_bound;
     and the wall time the runs took, per group and in all."""
     watched = any(r.q_watched for r in runs)
     timed = all(r.wall_s is not None for r in runs)
-    head = f"| env | algo | seeds | env steps | final {metric} | best {metric} |"
+    head = f"| env | algo | seeds | env steps | {final_name(metric, final_evals)} | best {metric} |"
     lines = [head + (" critics past q_bound (first at env steps) |" if watched else "") + (" wall time, h (seeds summed) |" if timed else ""),
              "|---|---|---|---|---|---|" + ("---|" if watched else "") + ("---|" if timed else "")]
     groups = group(runs)
     for env in sorted(groups):
         for algo in sorted(groups[env]):
             seeds = groups[env][algo]
-            final = np.array([r.returns[-1] for r in seeds])
+            final = np.array([final_value(r, final_evals) for r in seeds])
             best = np.array([r.returns.max() for r in seeds])
             steps = int(min(r.steps[-1] for r in seeds))
             line = (f"| {env} | {algo} | {len(seeds)} | {steps:,} | {final.mean():.1f} ± {final.std():.1f} | "
@@ -253,6 +262,8 @@ def plot_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     if out.suffix not in (".png", ".svg", ".pdf"):
         parser.error(f"-o {args.out}: use a .png, .svg or .pdf file name")
     # Every option is checked before the first file is written.
+    if args.final_evals < 1:
+        parser.error(f"--final-evals must be >= 1, got {args.final_evals}")
     if args.stats == "rliable":
         from silcr.stats import require_rliable
 
@@ -270,13 +281,13 @@ def plot_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         parser.error("--compare and --reference go with --stats rliable")
     metric = "return" if args.metric == "eval_return" else args.metric
     plot(runs, out, args.expert, args.title, "evaluation return (dense)" if metric == "return" else args.metric, args.logy)
-    table = summary_markdown(runs, metric)
+    table = summary_markdown(runs, metric, args.final_evals)
     if args.stats == "rliable":
         from silcr.stats import rliable_report
 
         try:
             table += "\n" + rliable_report(runs, args.compare, args.reference, args.bootstrap_reps,
-                                            figure=out.with_name(out.stem + "-stats.png"))
+                                            figure=out.with_name(out.stem + "-stats.png"), final_evals=args.final_evals)
         except ValueError as e:
             parser.error(str(e))
     print(table, end="")

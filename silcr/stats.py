@@ -13,7 +13,7 @@ rliable recommends, with its own code:
   over tasks, with its interval: the chance that a run of X beats a run of Y on a task.
 
 A run's final return is its last evaluation (the mean over `--eval-episodes` episodes
-of the deterministic policy). rliable is an optional dependency (`pip install rliable`,
+of the deterministic policy), or with `--final-evals K` the mean of its last K. rliable is an optional dependency (`pip install rliable`,
 or the `stats` extra).
 """
 
@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.plot import RunCurve, group
+from silcr.plot import RunCurve, final_name, final_value, group
 
 #: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
 REPS = 2000
@@ -69,8 +69,8 @@ def _pair_ci(estimate: float, interval: np.ndarray, runs: tuple[int, int], names
     return text
 
 
-def _final(runs: list[RunCurve]) -> np.ndarray:
-    return np.array([r.returns[-1] for r in runs], np.float64)
+def _final(runs: list[RunCurve], evals: int) -> np.ndarray:
+    return np.array([final_value(r, evals) for r in runs], np.float64)
 
 
 def default_reference(labels: set[str]) -> str | None:
@@ -78,26 +78,27 @@ def default_reference(labels: set[str]) -> str | None:
 
 
 def rliable_report(runs: list[RunCurve], compare: str | None = None, reference: str | None = None,
-                   reps: int = REPS, seed: int = 0, figure: Path | None = None) -> str:
+                   reps: int = REPS, seed: int = 0, figure: Path | None = None, final_evals: int = 1) -> str:
     """The Markdown report (and, with `figure`, an interval plot) described in the module docstring."""
     with _quiet_bootstrap():
-        return _report(runs, compare, reference, reps, seed, figure)
+        return _report(runs, compare, reference, reps, seed, figure, final_evals)
 
 
 def _report(runs: list[RunCurve], compare: str | None, reference: str | None, reps: int, seed: int,
-            figure: Path | None) -> str:
+            figure: Path | None, final_evals: int) -> str:
     rly, metrics = require_rliable()
     groups = group(runs)
     envs = sorted(groups)
     labels = sorted({label for env in envs for label in groups[env]})
     rng = lambda: np.random.RandomState(seed)  # noqa: E731 - the same draws for every estimate
     iqm = lambda x: np.array([metrics.aggregate_iqm(x)])  # noqa: E731
-    lines = [f"Final return: interquartile mean over seeds, 95% stratified bootstrap interval ({reps} replications, "
+    lines = [f"{final_name('return', final_evals).capitalize()}: interquartile mean over seeds, 95% stratified "
+             f"bootstrap interval ({reps} replications, "
              f"rliable).", "", "| env | group | seeds | IQM [95% CI] |", "|---|---|---|---|"]
     per_task: dict[str, dict[str, tuple[float, np.ndarray]]] = defaultdict(dict)
     for env in envs:
         for label in sorted(groups[env]):
-            scores = _final(groups[env][label])
+            scores = _final(groups[env][label], final_evals)
             point, interval = rly.get_interval_estimates({label: scores[:, None]}, iqm, reps=reps,
                                                          random_state=rng())
             per_task[env][label] = (float(point[label][0]), interval[label][:, 0])
@@ -115,8 +116,8 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
             columns = []
             for env in envs:
                 zero = float(np.mean([r.returns[0] for g in groups[env].values() for r in g]))
-                one = float(_final(groups[env][reference]).mean())
-                columns.append((_final(groups[env][label]) - zero) / (one - zero if one != zero else 1.0))
+                one = float(_final(groups[env][reference], final_evals).mean())
+                columns.append((_final(groups[env][label], final_evals) - zero) / (one - zero if one != zero else 1.0))
             n = min(len(c) for c in columns)  # rliable wants runs x tasks: the fewest seeds any task has
             normalised[label] = np.stack([c[:n] for c in columns], axis=1)
         points, intervals = rly.get_interval_estimates(normalised, iqm, reps=reps, random_state=rng())
@@ -137,7 +138,8 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
             for other in others:
                 if other not in groups[env]:
                     continue
-                pair = {other: (_final(groups[env][compare])[:, None], _final(groups[env][other])[:, None])}
+                pair = {other: (_final(groups[env][compare], final_evals)[:, None],
+                                _final(groups[env][other], final_evals)[:, None])}
                 points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps,
                                                                random_state=rng())
                 sizes = (len(pair[other][0]), len(pair[other][1]))

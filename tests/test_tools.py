@@ -47,6 +47,8 @@ def test_plot_draws_one_panel_per_task_and_one_curve_per_algorithm(tmp_path):
     table = summary_markdown(runs)
     assert table.count("\n") == 2 + 4 + 2  # head, 4 groups, a blank line and the wall time in all
     assert "| Hopper-v5 | silcr | 2 | 2,000 | 22.5 ± 2.5 | 22.5 ± 2.5 |" in table
+    # --final-evals 2: the mean of the last two evaluations, (10 + 20) / 2 and (11 + 25) / 2
+    assert "| Hopper-v5 | silcr | 2 | 2,000 | 16.5 ± 1.5 | 22.5 ± 2.5 |" in summary_markdown(runs, final_evals=2)
 
 
 def test_plot_rejects_a_directory_that_is_not_a_run(tmp_path):
@@ -224,8 +226,15 @@ def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probabi
     assert "| Hopper-v5 | ircr | 1.00 [1.00, 1.00] |" in table  # every silcr run beats every ircr run
     assert "| all 2 tasks | ircr | 1.00 [1.00, 1.00] |" in table
     assert (tmp_path / "fig-stats.png").stat().st_size > 1000
+    smoothed = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(out), "--stats",
+                               "rliable", "--final-evals", "2", "--bootstrap-reps", "200"],
+                              capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert smoothed.returncode == 0, smoothed.stdout + smoothed.stderr
+    assert "| Hopper-v5 | silcr | 3 | 10.00 [" in smoothed.stdout  # the mean of 0 and 10, 20, 30: 5, 10, 15
+    assert "Final return (mean of the last 2 evaluations): interquartile mean" in smoothed.stdout
     for option, message in ((["--compare", "nope"], "--compare 'nope': no such group"),
-                            (["--bootstrap-reps", "10"], "--bootstrap-reps must be >= 100")):
+                            (["--bootstrap-reps", "10"], "--bootstrap-reps must be >= 100"),
+                            (["--final-evals", "0"], "--final-evals must be >= 1")):
         fresh = tmp_path / "bad" / "fig.png"
         bad = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(fresh), "--stats",
                               "rliable", *option], capture_output=True, text=True, cwd=REPO, timeout=120)
