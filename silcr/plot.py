@@ -165,6 +165,13 @@ def mean_curve(runs: list[RunCurve], points: int = 100) -> tuple[np.ndarray, np.
     return grid, ys.mean(0), ys.std(0)
 
 
+def _steps_tick(value: float, _position: int) -> str:
+    for scale, suffix in ((1e6, "M"), (1e3, "k")):
+        if abs(value) >= scale:
+            return f"{value / scale:g}{suffix}"
+    return f"{value:g}"
+
+
 def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: str = "", ylabel: str = "evaluation return (dense)",
          logy: bool = False):
     import matplotlib
@@ -172,8 +179,13 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from matplotlib.ticker import FuncFormatter
+
     groups = group(runs)
     envs = sorted(groups)
+    # One colour per group across every panel, even where a panel lacks some group.
+    palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    colour = {algo: palette[i % len(palette)] for i, algo in enumerate(sorted({r.algo for r in runs}))}
     cols = min(3, len(envs))
     rows = (len(envs) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
@@ -183,16 +195,17 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
             label = f"{algo} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})"
             if logy:  # values over orders of magnitude: the median, and the range over seeds
                 x, ys = _on_grid(seeds)
-                (line,) = ax.plot(x, np.median(ys, 0), label=label)
-                ax.fill_between(x, ys.min(0), ys.max(0), color=line.get_color(), alpha=0.2)
+                ax.plot(x, np.median(ys, 0), label=label, color=colour[algo])
+                ax.fill_between(x, ys.min(0), ys.max(0), color=colour[algo], alpha=0.2)
             else:
                 x, m, sd = mean_curve(seeds)
-                (line,) = ax.plot(x, m, label=label)
-                ax.fill_between(x, m - sd, m + sd, color=line.get_color(), alpha=0.2)
+                ax.plot(x, m, label=label, color=colour[algo])
+                ax.fill_between(x, m - sd, m + sd, color=colour[algo], alpha=0.2)
         if expert is not None:
             ax.axhline(expert, linestyle="--", color="black", label="expert")
         ax.set_title(env)
         ax.set_xlabel("environment steps")
+        ax.xaxis.set_major_formatter(FuncFormatter(_steps_tick))  # "200k", not "200000" running into its neighbour
         ax.set_ylabel(ylabel)
         if logy:
             positive = all((r.returns > 0).all() for seeds in groups[env].values() for r in seeds)

@@ -51,6 +51,19 @@ def test_plot_draws_one_panel_per_task_and_one_curve_per_algorithm(tmp_path):
     assert "| Hopper-v5 | silcr | 2 | 2,000 | 16.5 ± 1.5 | 22.5 ± 2.5 |" in summary_markdown(runs, final_evals=2)
 
 
+def test_a_group_keeps_its_colour_in_every_panel_and_steps_read_in_thousands(tmp_path):
+    """ircr runs on Hopper only: without one colour per group, Walker2d's silcr would take
+    the colour ircr has on Hopper."""
+    from silcr.plot import _steps_tick
+
+    runs = [load_run(_fake_run(tmp_path, env, algo, 0, [0, 100_000, 200_000], [0, 1, 2]))
+            for env, algo in (("Hopper-v5", "ircr"), ("Hopper-v5", "silcr"), ("Walker2d-v5", "silcr"))]
+    fig = plot(runs, tmp_path / "fig.png")
+    colours = [{line.get_label().split()[0]: line.get_color() for line in ax.get_lines()} for ax in fig.axes]
+    assert colours[0]["silcr"] == colours[1]["silcr"] != colours[0]["ircr"]
+    assert [_steps_tick(v, 0) for v in (0, 500, 25_000, 200_000, 2_000_000)] == ["0", "500", "25k", "200k", "2M"]
+
+
 def test_plot_rejects_a_directory_that_is_not_a_run(tmp_path):
     r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", str(tmp_path), "-o", str(tmp_path / "f.png")],
                        capture_output=True, text=True, cwd=REPO, timeout=60)
