@@ -230,7 +230,8 @@ def final_value(run: RunCurve, evals: int = 1) -> float:
 
 
 def final_name(metric: str, evals: int) -> str:
-    return f"final {metric}" if evals == 1 else f"final {metric} (mean of the last {evals} evaluations)"
+    rows = "evaluations" if metric == "return" else "values"
+    return f"final {metric}" if evals == 1 else f"final {metric} (mean of the last {evals} {rows})"
 
 
 def summary_markdown(runs: list[RunCurve], metric: str = "return", final_evals: int = 1) -> str:

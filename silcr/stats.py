@@ -13,8 +13,8 @@ rliable recommends, with its own code:
   over tasks, with its interval: the chance that a run of X beats a run of Y on a task.
 
 A run's final return is its last evaluation (the mean over `--eval-episodes` episodes
-of the deterministic policy), or with `--final-evals K` the mean of its last K. rliable is an optional dependency (`pip install rliable`,
-or the `stats` extra).
+of the deterministic policy), or with `--final-evals K` the mean of its last K. rliable
+is an optional dependency (`pip install rliable`, or the `stats` extra).
 """
 
 from __future__ import annotations

@@ -200,8 +200,6 @@ def test_a_resumed_run_plots_the_rows_written_after_the_resume(tmp_path):
 def test_the_table_adds_each_resumed_stretch_to_a_run_s_wall_time(tmp_path):
     """progress.csv's time restarts at zero when a run resumes: 1,800 s, then 900 s more after the
     resume (rows it wrote again included) is 0.75 h, not the last row's 0.25 h."""
-    from silcr.plot import load_run, summary_markdown
-
     d = _fake_run(tmp_path, "Hopper-v5", "silcr", 0, [0, 1000, 2000, 1500, 3000], [1, 2, 3, 4, 5])
     text = (d / "progress.csv").read_text().splitlines()
     times = [600, 1200, 1800, 300, 900]
