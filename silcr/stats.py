@@ -59,8 +59,10 @@ def _ci(estimate: float, interval: np.ndarray, runs: int = 2) -> str:
     return f"{estimate:,.2f} [{interval[0]:,.2f}, {interval[1]:,.2f}]"
 
 
-def _pair_ci(estimate: float, interval: np.ndarray, runs: tuple[int, int], names: tuple[str, str]) -> str:
+def _pair_ci(estimate: float, interval: np.ndarray, scores: tuple[np.ndarray, np.ndarray],
+             names: tuple[str, str]) -> str:
     """P(X > Y) with one side a single seed: the interval then resamples the other side only."""
+    runs = (len(scores[0]), len(scores[1]))
     text = _ci(estimate, interval, max(runs))
     single = [name for name, n in zip(names, runs) if n < 2]
     if single and max(runs) >= 2:
@@ -142,18 +144,16 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
                                 _final(groups[env][other], final_evals)[:, None])}
                 points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps,
                                                                random_state=rng())
-                sizes = (len(pair[other][0]), len(pair[other][1]))
                 lines.append(f"| {env} | {other} | "
-                             f"{_pair_ci(float(points[other]), intervals[other][:, 0], sizes, (compare, other))} |")
+                             f"{_pair_ci(float(points[other]), intervals[other][:, 0], pair[other], (compare, other))} |")
         if compare in normalised:
             for other in others:
                 if other in normalised:
                     pair = {other: (normalised[compare], normalised[other])}
                     points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement,
                                                                    reps=reps, random_state=rng())
-                    sizes = (len(pair[other][0]), len(pair[other][1]))
                     lines.append(f"| all {len(envs)} tasks | {other} | "
-                                 f"{_pair_ci(float(points[other]), intervals[other][:, 0], sizes, (compare, other))} |")
+                                 f"{_pair_ci(float(points[other]), intervals[other][:, 0], pair[other], (compare, other))} |")
     if figure is not None:
         _interval_figure(per_task, figure)
     return "\n".join(lines) + "\n"
