@@ -6,6 +6,7 @@ The learning comparison with the distributed launcher is in test_learning.py.
 from __future__ import annotations
 
 import csv
+import os
 import signal
 import subprocess
 import sys
@@ -70,6 +71,34 @@ def test_ctrl_c_leaves_checkpoints_and_resume_finishes_the_run(tmp_path):
     rows = _rows(tmp_path / "cut" / "progress.csv")
     updates = [int(r["updates"]) for r in rows]
     assert updates == sorted(updates) and updates[-1] >= 5500 > stopped_at
+
+
+def test_a_resume_after_a_hard_kill_keeps_one_update_per_step_over_the_whole_run(tmp_path):
+    """SIGKILL leaves the learner's checkpoint (every 1,000 updates) and the buffer's (every 0.2 s
+    here) at different moments; the resumed run still ends with one update per env step after the
+    warm-up, as a run that was never cut does (updates = env_steps - learning_starts)."""
+    procs = Processes(tmp_path)
+    args = ["train", "--single-process", "--run", "killed", "--runs-dir", str(tmp_path), *SMALL,
+            "--total-steps", "6000", "--buffer-checkpoint-interval", "0.2"]
+    ckpts = tmp_path / "killed" / "checkpoints"
+    learner_ckpt, buffer_ckpt = ckpts / "learner.pt", ckpts / "buffer.ckpt"
+    try:
+        train = procs.start("train1", *args, new_session=True)
+        # Kill between two learner checkpoints, once the buffer's is newer than the learner's.
+        wait_for(lambda: learner_ckpt.exists() and load_checkpoint(learner_ckpt)["counters"]["updates"] >= 1000
+                 and buffer_ckpt.exists() and buffer_ckpt.stat().st_mtime > learner_ckpt.stat().st_mtime + 0.5,
+                 240, "a buffer checkpoint newer than the learner's")
+        os.killpg(train.pid, signal.SIGKILL)
+        train.wait(30)
+        train = procs.start("train2", *args, "--resume")
+        assert train.wait(300) == 0, procs.log("train2")
+    finally:
+        procs.stop_all()
+    log = (tmp_path / "killed" / "logs" / "single-process.log").read_text()
+    assert "the limiter takes the learner's count" in log, log[-2000:]
+    last = _rows(tmp_path / "killed" / "progress.csv")[-1]
+    assert int(last["env_steps"]) >= 6000
+    assert int(last["updates"]) == int(last["env_steps"]) - 500
 
 
 def test_a_diverging_learner_is_counted_and_warned_about(tmp_path):
