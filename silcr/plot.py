@@ -258,9 +258,15 @@ def summary_markdown(runs: list[RunCurve], metric: str = "return", final_evals: 
                 line += f" {sum(r.wall_s for r in seeds) / 3600:.2f} |"
             lines.append(line)
     if timed:
+        single = sum(bool(r.config.get("single_process")) for r in runs)
+        cores = ("a `--single-process` run with one torch thread keeps about one core busy" if single == len(runs) else
+                 "a distributed run's processes keep several cores busy, so its core-hours are more than its wall time"
+                 if single == 0 else
+                 f"{single} of the runs are `--single-process` (about one core each with one torch thread), the others "
+                 "distributed (several cores each)")
         lines += ["", f"Wall time: {sum(r.wall_s for r in runs) / 3600:.2f} h for the {len(runs)} runs together "
-                      "(each run's processes from start to end, every resumed stretch added and any pause included; "
-                      "a `--single-process` run with one torch thread keeps about one core busy)."]
+                      f"(each run's processes from start to end, every resumed stretch added and any pause included; "
+                      f"{cores})."]
     return "\n".join(lines) + "\n"
 
 

@@ -159,6 +159,13 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
     return "\n".join(lines) + "\n"
 
 
+def figure_labels(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], labels: list[str]) -> dict[str, str]:
+    """The interval figure's name for each group: a one-seed group's interval has no width, and a bar
+    of no width reads as a certain value, so its name says why."""
+    return {label: f"{label} (one seed)" if all(np.ptp(per_task[env][label][1]) == 0 for env in per_task) else label
+            for label in labels}
+
+
 def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], out: Path) -> None:
     """rliable's interval plot: one panel per task, one bar per group present on every task."""
     import matplotlib
@@ -170,9 +177,10 @@ def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], o
     labels = sorted(set.intersection(*(set(per_task[env]) for env in envs)))
     if not labels:
         return
-    points = {label: np.array([per_task[env][label][0] for env in envs]) for label in labels}
-    intervals = {label: np.stack([per_task[env][label][1] for env in envs], axis=1) for label in labels}
-    fig, _ = plot_utils.plot_interval_estimates(points, intervals, envs, labels, xlabel="final return: IQM, 95% CI",
-                                                row_height=0.5)
+    shown = figure_labels(per_task, labels)
+    points = {shown[label]: np.array([per_task[env][label][0] for env in envs]) for label in labels}
+    intervals = {shown[label]: np.stack([per_task[env][label][1] for env in envs], axis=1) for label in labels}
+    fig, _ = plot_utils.plot_interval_estimates(points, intervals, envs, [shown[label] for label in labels],
+                                                xlabel="final return: IQM, 95% CI", row_height=0.5)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120, bbox_inches="tight")

@@ -208,6 +208,11 @@ def test_the_table_adds_each_resumed_stretch_to_a_run_s_wall_time(tmp_path):
     assert run.wall_s == 2700
     table = summary_markdown([run, load_run(_fake_run(tmp_path, "Hopper-v5", "silcr", 1, [0, 1000], [1, 2]))])
     assert "| 0.75 |" in table and "Wall time: 0.75 h for the 2 runs together" in table
+    assert "distributed run's processes keep several cores busy" in table  # _fake_run's config is distributed
+    single = _fake_run(tmp_path, "Hopper-v5", "silcr", 2, [0, 1000], [1, 2])
+    Config(run=single.name, env="Hopper-v5", algo="silcr", seed=2, single_process=True).save(single / "config.toml")
+    assert "one torch thread keeps about one core busy" in summary_markdown([load_run(single)])
+    assert "1 of the runs are `--single-process`" in summary_markdown([run, load_run(single)])
 
 
 def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probability_of_improvement(tmp_path):
@@ -237,6 +242,11 @@ def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probabi
     assert "| Hopper-v5 | ircr | 1.00 [1.00, 1.00] |" in table  # every silcr run beats every ircr run
     assert "| all 2 tasks | ircr | 1.00 [1.00, 1.00] |" in table
     assert (tmp_path / "fig-stats.png").stat().st_size > 1000
+    from silcr.stats import figure_labels  # the figure names the group whose bar has no width
+
+    one, three = (5.0, np.array([5.0, 5.0])), (20.0, np.array([10.0, 30.0]))
+    assert figure_labels({"A": {"sac-dense": one, "silcr": three}, "B": {"sac-dense": one, "silcr": three}},
+                         ["sac-dense", "silcr"]) == {"sac-dense": "sac-dense (one seed)", "silcr": "silcr"}
     smoothed = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(out), "--stats",
                                "rliable", "--final-evals", "2", "--bootstrap-reps", "200"],
                               capture_output=True, text=True, cwd=REPO, timeout=300)
