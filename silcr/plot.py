@@ -147,6 +147,15 @@ def distinguish(runs: list[RunCurve]) -> list[RunCurve]:
     return runs
 
 
+def group_colours(labels: set[str]) -> dict[str, str]:
+    """One colour per group, the same in every panel (even where a panel lacks some group) and in
+    `--stats rliable`'s interval figure: matplotlib's cycle in the groups' sorted order."""
+    import matplotlib.pyplot as plt
+
+    palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
+    return {label: palette[i % len(palette)] for i, label in enumerate(sorted(labels))}
+
+
 def group(runs: list[RunCurve]) -> dict[str, dict[str, list[RunCurve]]]:
     out: dict[str, dict[str, list[RunCurve]]] = defaultdict(lambda: defaultdict(list))
     for r in runs:
@@ -183,9 +192,7 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
 
     groups = group(runs)
     envs = sorted(groups)
-    # One colour per group across every panel, even where a panel lacks some group.
-    palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    colour = {algo: palette[i % len(palette)] for i, algo in enumerate(sorted({r.algo for r in runs}))}
+    colour = group_colours({r.algo for r in runs})
     cols = min(3, len(envs))
     rows = (len(envs) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)

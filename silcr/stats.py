@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.plot import RunCurve, final_name, final_value, group
+from silcr.plot import RunCurve, final_name, final_value, group, group_colours
 
 #: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
 REPS = 2000
@@ -57,6 +57,10 @@ def _ci(estimate: float, interval: np.ndarray, runs: int = 2) -> str:
     if runs < 2:
         return f"{estimate:,.2f} (one seed: no interval)"
     return f"{estimate:,.2f} [{interval[0]:,.2f}, {interval[1]:,.2f}]"
+
+
+def _tasks(n: int) -> str:
+    return f"{n} task{'s' if n != 1 else ''}"
 
 
 def _pair_ci(estimate: float, interval: np.ndarray, scores: tuple[np.ndarray, np.ndarray],
@@ -110,7 +114,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
     complete = [label for label in labels if all(label in groups[env] for env in envs)]
     normalised: dict[str, np.ndarray] = {}
     if reference is not None and reference in complete:
-        lines += ["", f"Over the {len(envs)} tasks: final return normalised per task, 0 = the untrained policy "
+        lines += ["", f"Over {_tasks(len(envs))}: final return normalised per task, 0 = the untrained policy "
                       f"(first evaluation, mean over every run of the task), 1 = {reference}'s final return "
                       f"(its mean over seeds). IQM [95% CI] over all runs of all tasks.", "",
                   "| group | runs per task | normalised IQM [95% CI] |", "|---|---|---|"]
@@ -152,7 +156,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
                     pair = {other: (normalised[compare], normalised[other])}
                     points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement,
                                                                    reps=reps, random_state=rng())
-                    lines.append(f"| all {len(envs)} tasks | {other} | "
+                    lines.append(f"| all {_tasks(len(envs))} | {other} | "
                                  f"{_pair_ci(float(points[other]), intervals[other][:, 0], pair[other], (compare, other))} |")
     if figure is not None:
         _interval_figure(per_task, figure)
@@ -180,7 +184,9 @@ def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], o
     shown = figure_labels(per_task, labels)
     points = {shown[label]: np.array([per_task[env][label][0] for env in envs]) for label in labels}
     intervals = {shown[label]: np.stack([per_task[env][label][1] for env in envs], axis=1) for label in labels}
+    colour = group_colours({label for env in envs for label in per_task[env]})  # as in the curves' figure
     fig, _ = plot_utils.plot_interval_estimates(points, intervals, envs, [shown[label] for label in labels],
+                                                colors={shown[label]: colour[label] for label in labels},
                                                 xlabel="final return: IQM, 95% CI", row_height=0.5)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120, bbox_inches="tight")

@@ -215,6 +215,32 @@ def test_the_table_adds_each_resumed_stretch_to_a_run_s_wall_time(tmp_path):
     assert "1 of the runs are `--single-process`" in summary_markdown([run, load_run(single)])
 
 
+def test_the_interval_figure_colours_each_group_as_the_curves_do(tmp_path, monkeypatch):
+    """The curves colour groups in sorted order over all of them; the interval figure (which shows only
+    groups on every task) must give each the same colour, not rliable's palette in its own order."""
+    pytest.importorskip("rliable")
+    from rliable import plot_utils
+
+    from silcr.plot import group_colours
+    from silcr.stats import _interval_figure
+
+    seen = {}
+    real = plot_utils.plot_interval_estimates
+
+    def spy(*args, **kwargs):
+        seen.update(kwargs["colors"])
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(plot_utils, "plot_interval_estimates", spy)
+    three, one = (20.0, np.array([10.0, 30.0])), (5.0, np.array([5.0, 5.0]))
+    per_task = {"A": {"ircr": three, "sac-dense": one, "silcr": three, "gasil": three},
+                "B": {"ircr": three, "sac-dense": one, "silcr": three}}  # gasil on one task only: not in the figure
+    _interval_figure(per_task, tmp_path / "f.png")
+    colour = group_colours({"gasil", "ircr", "sac-dense", "silcr"})  # what the curves' figure uses
+    assert seen == {"ircr": colour["ircr"], "sac-dense (one seed)": colour["sac-dense"], "silcr": colour["silcr"]}
+    assert len(set(seen.values())) == 3 and (tmp_path / "f.png").stat().st_size > 1000
+
+
 def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probability_of_improvement(tmp_path):
     """Three seeds of silcr and ircr and one of sac-dense on two tasks, with final returns chosen so the
     answers are known: the IQM of three values is their mean, silcr beats ircr in every pair."""
