@@ -18,6 +18,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import re
 import tomllib
 from collections import defaultdict
 from dataclasses import dataclass, field
@@ -147,13 +148,19 @@ def distinguish(runs: list[RunCurve]) -> list[RunCurve]:
     return runs
 
 
+def label_key(label: str) -> list:
+    """Groups' order everywhere: numbers in a name by value, so an ablation reads silcr-M1000,
+    silcr-M2000, silcr-M10000 rather than in character order."""
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", label)]
+
+
 def group_colours(labels: set[str]) -> dict[str, str]:
     """One colour per group, the same in every panel (even where a panel lacks some group) and in
     `--stats rliable`'s interval figure: matplotlib's cycle in the groups' sorted order."""
     import matplotlib.pyplot as plt
 
     palette = plt.rcParams["axes.prop_cycle"].by_key()["color"]
-    return {label: palette[i % len(palette)] for i, label in enumerate(sorted(labels))}
+    return {label: palette[i % len(palette)] for i, label in enumerate(sorted(labels, key=label_key))}
 
 
 def group(runs: list[RunCurve]) -> dict[str, dict[str, list[RunCurve]]]:
@@ -197,7 +204,7 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
     rows = (len(envs) + cols - 1) // cols
     fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
     for ax, env in zip(axes.flat, envs):
-        for algo in sorted(groups[env]):
+        for algo in sorted(groups[env], key=label_key):
             seeds = groups[env][algo]
             label = f"{algo} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})"
             if logy:  # values over orders of magnitude: the median, and the range over seeds
@@ -251,7 +258,7 @@ def summary_markdown(runs: list[RunCurve], metric: str = "return", final_evals: 
              "|---|---|---|---|---|---|" + ("---|" if watched else "") + ("---|" if timed else "")]
     groups = group(runs)
     for env in sorted(groups):
-        for algo in sorted(groups[env]):
+        for algo in sorted(groups[env], key=label_key):
             seeds = groups[env][algo]
             final = np.array([final_value(r, final_evals) for r in seeds])
             best = np.array([r.returns.max() for r in seeds])
@@ -303,7 +310,7 @@ def plot_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
             parser.error(f"--bootstrap-reps must be >= 100, got {args.bootstrap_reps}")
         for option, value in (("--compare", args.compare), ("--reference", args.reference)):
             if value is not None and value not in labels:
-                parser.error(f"{option} {value!r}: no such group (groups: {', '.join(sorted(labels))})")
+                parser.error(f"{option} {value!r}: no such group (groups: {', '.join(sorted(labels, key=label_key))})")
     elif args.compare or args.reference:
         parser.error("--compare and --reference go with --stats rliable")
     metric = "return" if args.metric == "eval_return" else args.metric

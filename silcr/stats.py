@@ -26,7 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.plot import RunCurve, final_name, final_value, group, group_colours
+from silcr.plot import RunCurve, final_name, final_value, group, group_colours, label_key
 
 #: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
 REPS = 2000
@@ -95,7 +95,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
     rly, metrics = require_rliable()
     groups = group(runs)
     envs = sorted(groups)
-    labels = sorted({label for env in envs for label in groups[env]})
+    labels = sorted({label for env in envs for label in groups[env]}, key=label_key)
     rng = lambda: np.random.RandomState(seed)  # noqa: E731 - the same draws for every estimate
     iqm = lambda x: np.array([metrics.aggregate_iqm(x)])  # noqa: E731
     lines = [f"{final_name('return', final_evals).capitalize()}: interquartile mean over seeds, 95% stratified "
@@ -103,7 +103,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
              f"rliable).", "", "| env | group | seeds | IQM [95% CI] |", "|---|---|---|---|"]
     per_task: dict[str, dict[str, tuple[float, np.ndarray]]] = defaultdict(dict)
     for env in envs:
-        for label in sorted(groups[env]):
+        for label in sorted(groups[env], key=label_key):
             scores = _final(groups[env][label], final_evals)
             point, interval = rly.get_interval_estimates({label: scores[:, None]}, iqm, reps=reps,
                                                          random_state=rng())
@@ -178,7 +178,7 @@ def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], o
     from rliable import plot_utils
 
     envs = sorted(per_task)
-    labels = sorted(set.intersection(*(set(per_task[env]) for env in envs)))
+    labels = sorted(set.intersection(*(set(per_task[env]) for env in envs)), key=label_key)
     if not labels:
         return
     shown = figure_labels(per_task, labels)

@@ -10,7 +10,7 @@ import pytest
 import torch
 
 from silcr.common.config import Config
-from silcr.plot import load_run, plot, summary_markdown
+from silcr.plot import label_by_variant, load_run, plot, summary_markdown
 from silcr.learner.checkpoint import save_checkpoint
 from silcr.learner.sac import Sac, SacHyper
 from tests.helpers import REPO
@@ -213,6 +213,21 @@ def test_the_table_adds_each_resumed_stretch_to_a_run_s_wall_time(tmp_path):
     Config(run=single.name, env="Hopper-v5", algo="silcr", seed=2, single_process=True).save(single / "config.toml")
     assert "one torch thread keeps about one core busy" in summary_markdown([load_run(single)])
     assert "1 of the runs are `--single-process`" in summary_markdown([run, load_run(single)])
+
+
+def test_groups_are_listed_with_the_numbers_in_their_names_in_order(tmp_path):
+    """An ablation's variants (silcr-M1000 ... silcr-M100000) read in the order of M, not of characters."""
+    dirs = []
+    for variant, m in [("silcr-M10000", 10000), ("silcr-M1000", 1000), ("silcr-M100000", 100000), ("silcr-M2000", 2000)]:
+        d = tmp_path / f"{variant}_HalfCheetah-v5_s0"
+        d.mkdir()
+        Config(run=d.name, env="HalfCheetah-v5", algo="silcr", seed=0, expert_capacity=m).save(d / "config.toml")
+        (d / "progress.csv").write_text(f"time,env_steps,updates,policy_version,eval_return\n0,0,0,0,0\n1,1000,1,0,{m}\n")
+        dirs.append(d)
+    runs = [load_run(d) for d in dirs]
+    assert label_by_variant(runs)
+    rows = [line.split(" | ")[1] for line in summary_markdown(runs).splitlines() if line.startswith("| HalfCheetah")]
+    assert rows == ["silcr-M1000", "silcr-M2000", "silcr-M10000", "silcr-M100000"]
 
 
 def test_the_interval_figure_colours_each_group_as_the_curves_do(tmp_path, monkeypatch):
