@@ -137,6 +137,28 @@ def cell_state(run_dir: Path) -> str:
     return "new"
 
 
+def cell_detail(cell: Cell, run_dir: Path, state: str) -> str:
+    """What `--dry-run` adds after a cell's state: how far a stopped cell got (its progress.csv's
+    last env-step count), and whether a process holds the run now (a sweep in another terminal,
+    or one cut from its terminal that still runs)."""
+    from silcr.common.run_lock import RunInUse, check_free
+
+    parts = []
+    if state == "partial":
+        total = int(cell.options.get("total_steps", FIELDS["total_steps"].default))
+        try:
+            lines = (run_dir / "progress.csv").read_text().strip().splitlines()
+            steps = lines[-1].split(",")[lines[0].split(",").index("env_steps")] if len(lines) > 1 else ""
+            parts.append(f"{int(float(steps)):,} of {total:,} env steps")
+        except (OSError, IndexError, ValueError):
+            parts.append("no progress.csv rows yet")
+    try:
+        check_free(run_dir)
+    except RunInUse:
+        parts.append("running now")
+    return f"  ({'; '.join(parts)})" if parts else ""
+
+
 def _command(cell: Cell, runs_dir: Path, port: int, resume: bool) -> list[str]:
     from silcr.cli import command
 
@@ -190,7 +212,7 @@ def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: i
           f"{sum(s == 'new' for s in states.values())} new", flush=True)
     if dry_run:
         for c in cells:
-            print(f"  {states[c.name]:8s} {c.name}")
+            print(f"  {states[c.name]:8s} {c.name}{cell_detail(c, runs_dir / c.name, states[c.name])}")
         return 0
     if partial and not resume:
         raise ExperimentError(f"{len(partial)} cell(s) were stopped midway ({', '.join(partial[:3])}"

@@ -101,6 +101,30 @@ algo = "silcr"
 """
 
 
+def test_a_dry_run_says_how_far_a_stopped_cell_got_and_which_cells_run_now(tmp_path):
+    from silcr.common.run_lock import hold
+
+    exp = tmp_path / "tiny.toml"
+    exp.write_text(SMALL_EXPERIMENT.replace('[variants.silcr]', '[variants.sac]\nalgo = "sac"\n[variants.silcr]'))
+    runs = tmp_path / "runs"
+    stopped = runs / "silcr_InvertedPendulum-v5_s0"
+    (stopped / "checkpoints").mkdir(parents=True)
+    (stopped / "checkpoints" / "learner.pt").write_bytes(b"")  # what makes a cell "partial"
+    (stopped / "progress.csv").write_text("time,env_steps,updates\n1.0,1000,500\n2.0,2500,2000\n")
+
+    def dry_run() -> list[str]:
+        r = subprocess.run([sys.executable, "-m", "silcr.cli", "sweep", str(exp), "--seeds", "0", "--runs-dir",
+                            str(runs), "--dry-run"], capture_output=True, text=True, cwd=REPO, timeout=60)
+        assert r.returncode == 0, r.stderr
+        return r.stdout.splitlines()[1:]
+
+    assert dry_run() == ["  new      sac_InvertedPendulum-v5_s0",
+                         "  partial  silcr_InvertedPendulum-v5_s0  (2,500 of 4,000 env steps)"]
+    with hold(runs / "sac_InvertedPendulum-v5_s0"), hold(stopped):  # as a live `silcr train` holds its run
+        assert dry_run() == ["  new      sac_InvertedPendulum-v5_s0  (running now)",
+                             "  partial  silcr_InvertedPendulum-v5_s0  (2,500 of 4,000 env steps; running now)"]
+
+
 def test_an_interrupted_cell_resumes_from_its_checkpoint(tmp_path):
     exp = tmp_path / "tiny.toml"
     exp.write_text(SMALL_EXPERIMENT)
