@@ -89,6 +89,10 @@ class ReplayState:
         # Last sequence number per (actor id, incarnation): an episode is never stored twice.
         self.last_seq: dict[tuple[int, int], int] = {}
         self.started = time.time()
+        # The learner whose update count the limiter last took (not checkpointed: a restarted buffer
+        # takes the count again from the learner's first request) and how often that changed it.
+        self.counted_learner: int | None = None
+        self.limiter_realigned = 0
 
     def warm_start(self, demos: list[P.Episode]) -> None:
         """`--expert-init`: offer demonstrations to D_E, best first, before any episode of the agent's own.
@@ -183,7 +187,33 @@ class ReplayState:
             self.sample_requests += 1
             self._refused(e)
             raise
+        if req.learner and req.updates is not None:
+            self.take_learner_count(req.learner, req.updates)
         return self.sample(req)
+
+    def take_learner_count(self, learner: int, updates: int) -> None:
+        """On a learner's first request, make the limiter's count of updates served its count of updates made.
+
+        Every batch served is one update, so the two counts agree until a component
+        restarts from a checkpoint: a learner restarted from its last checkpoint (every
+        `--checkpoint-interval` updates) lost the updates since, which the limiter still
+        counts as served, so the run would end "starved" that many updates short; a
+        buffer restarted from its last checkpoint counts fewer than the learner made. The
+        learner's count is the one its weights have seen, so the limiter takes it: lost
+        updates are served again, and the actors re-collect what the buffer lost before
+        the learner trains further. Later requests of the same learner change nothing
+        (their counts lag the batches in flight).
+        """
+        if learner == self.counted_learner:
+            return
+        self.counted_learner = learner
+        served = self.limiter.samples
+        if served != updates:
+            self.limiter_realigned += 1
+            log.info("learner %d has made %d updates, the limiter counted %d served; it takes the learner's count, "
+                     "so %d updates are %s", learner, updates, served, abs(served - updates),
+                     "served again" if served > updates else "not served twice")
+            self.limiter.samples = updates
 
     def _refused(self, e: P.ProtocolError) -> None:
         self.sample_requests_rejected += 1
@@ -300,6 +330,7 @@ class ReplayState:
             "sample_requests_rejected": self.sample_requests_rejected,
             "request_rejections": dict(self.request_rejections),
             "not_ready_replies": self.not_ready_replies,
+            "limiter_realigned": self.limiter_realigned,
             "samples_per_insert": self.limiter.observed_samples_per_insert(),
             "samples_per_insert_target": self.limiter.samples_per_insert,
             "rate_limiter_error": self.limiter.error - self.limiter.centre,

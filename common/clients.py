@@ -223,20 +223,29 @@ class ZenohBatchStream(BatchStream):
     next batches cross the network while the current one trains."""
 
     def __init__(self, session: zenoh.Session, keys: P.Keys, request: P.SampleRequest, requests_in_flight: int,
-                 stop: StopFlag) -> None:
+                 stop: StopFlag, updates_before: int | None = None) -> None:
         super().__init__(stop)
         # The buffer serves only requests that name a live learner: this stream's token says it is one.
         # (An outside client's sampling would spend the learner's samples-per-insert budget.)
         if not request.learner:
             request = dataclasses.replace(request, learner=P.new_incarnation())
         self._token = session.liveliness().declare_token(keys.alive("learner", request.learner))
-        self._request = request.encode()
+        self._request = request
+        # A learner trains each batch before it asks for more, so its count of updates is the one it
+        # restored (`updates_before`) plus the batches this stream has received: each request says it,
+        # and the buffer's limiter takes it from the first (ReplayState.take_learner_count).
+        self._updates_before = updates_before
         self._in_flight_limit = requests_in_flight
         self._querier = session.declare_querier(keys.sample, timeout=QUERY_TIMEOUT_S,
                                                 consolidation=zenoh.ConsolidationMode.NONE)
         self._key = keys.sample
         self._in_flight: collections.deque = collections.deque()
         self._last_error_log = 0.0
+
+    def _payload(self) -> bytes:
+        if self._updates_before is None:
+            return self._request.encode()
+        return dataclasses.replace(self._request, updates=self._updates_before + self.batches).encode()
 
     def wait_for_buffer(self) -> None:
         """Block until a buffer service answers sample queries (or stop)."""
@@ -247,7 +256,7 @@ class ZenohBatchStream(BatchStream):
 
     def get(self) -> P.BatchReply | None:
         while len(self._in_flight) < self._in_flight_limit:
-            self._in_flight.append(self._querier.get(payload=self._request))
+            self._in_flight.append(self._querier.get(payload=self._payload()))
         t0 = time.monotonic()
         reply = next(iter(self._in_flight.popleft()), None)
         self.wait_times.append(time.monotonic() - t0)

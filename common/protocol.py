@@ -495,11 +495,17 @@ class SampleRequest:
     recent_window: int = 0
     #: the requesting learner's incarnation (as on its weights); over Zenoh the buffer serves only a live learner
     learner: int = 0
+    #: the learner's count of updates made when it sent the request (None: not sent); the buffer's rate
+    #: limiter takes it from a learner's first request, so a learner restarted from an older checkpoint
+    #: is served again the updates it lost (ReplayState.take_learner_count)
+    updates: int | None = None
 
     def encode(self) -> bytes:
         msg: dict[str, Any] = {"kind": "sample", "batches": self.batches, "batch_size": self.batch_size}
         if self.learner:
             msg["learner"] = self.learner
+        if self.updates is not None:
+            msg["updates"] = self.updates
         if self.disc_batch_size:
             msg |= {"disc_batch_size": self.disc_batch_size, "recent_window": self.recent_window}
         return _pack(msg)
@@ -526,7 +532,8 @@ class SampleRequest:
             raise ProtocolError("bad_request", f"{batches} x {disc} discriminator rows per class are more than "
                                                f"{MAX_ROWS_PER_REQUEST} per request")
         learner = _int(msg, "learner", 0, default=0)
-        return cls(batches, batch_size, disc, window, learner)
+        updates = _int(msg, "updates", 0) if "updates" in msg else None
+        return cls(batches, batch_size, disc, window, learner, updates)
 
 
 A = TypeVar("A")  # an array type: numpy arrays on the wire and in the buffer, torch tensors in the learner

@@ -23,7 +23,7 @@ Checkpoints: the learner's on its update schedule, the buffer's every
 `--buffer-checkpoint-interval` seconds in a background thread, both on the way
 out; `--resume` restores both (the actors start new episodes, with new seeds)
 and, after a hard kill left the two at different moments, takes the updates
-the learner lost again (`align_served_updates`).
+the learner lost again (`ReplayState.take_learner_count`).
 There is no stats topic: the progress bar, progress.csv and TensorBoard report.
 """
 
@@ -36,7 +36,7 @@ import time
 
 from silcr.actor.service import Actor, policy_factory, random_initial_weights
 from silcr.buffer_service import snapshot
-from silcr.buffer_service.replay import ReplayState, checkpoint_path, open_replay
+from silcr.buffer_service.replay import checkpoint_path, open_replay
 from silcr.common import seeds
 from silcr.common.clients import InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
 from silcr.common.config import Config
@@ -48,26 +48,6 @@ from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.learner import Learner
 
 log = logging.getLogger("train")
-
-
-def align_served_updates(replay: ReplayState, learner_updates: int) -> None:
-    """Make the limiter's count of updates served the learner's count of updates made.
-
-    In one process every batch served is one update, so the two counts agree
-    until a hard kill (SIGKILL, a machine's end): the learner's checkpoint falls
-    due every `--checkpoint-interval` updates and the buffer's every
-    `--buffer-checkpoint-interval` seconds, so a resume restores two counts taken
-    at different moments. The learner's is the one the weights have seen. Taking
-    it keeps exactly `--samples-per-insert` over the whole run: updates lost with
-    the learner's newer work are served again at once, and updates the buffer
-    lost are not served twice (the actors step ahead of them instead).
-    """
-    served = replay.limiter.samples
-    if served != learner_updates:
-        log.info("resume: the buffer had served %d updates, the learner restored %d; the limiter takes the "
-                 "learner's count, so %d updates are %s", served, learner_updates, abs(served - learner_updates),
-                 "served again" if served > learner_updates else "not served twice")
-        replay.limiter.samples = learner_updates
 
 
 def run_single_process(cfg: Config) -> int:
@@ -93,7 +73,8 @@ def run_single_process(cfg: Config) -> int:
         print(f"silcr train: error: cannot resume: {e}", file=sys.stderr)
         return 2
     learner.start()  # the first weights are on the board before any actor acts
-    align_served_updates(replay, learner.books.updates)
+    # A hard kill leaves the two checkpoints at different moments: the limiter takes the learner's count.
+    replay.take_learner_count(learner.books.incarnation, learner.books.updates)
     actor_cfg = cfg
     if replay.transitions_received:  # resumed actors must not replay the episodes of the first start
         actor_cfg = Config(**cfg.to_dict() | {"seed": seeds.resumed(cfg.seed, replay.transitions_received)})

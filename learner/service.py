@@ -36,7 +36,8 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                  cfg.run, lrn.update.device, cfg.algo, cfg.hidden, cfg.batch_size, cfg.total_steps)
         # The requests name the learner's incarnation (as its weights do): the buffer serves only a live learner.
         request = dataclasses.replace(lrn.sample_request(), learner=lrn.books.incarnation)
-        stream = ZenohBatchStream(role.session, role.keys, request, cfg.requests_in_flight, stop)
+        stream = ZenohBatchStream(role.session, role.keys, request, cfg.requests_in_flight, stop,
+                                  updates_before=lrn.books.updates)
         lrn.start()
         stream.wait_for_buffer()
         finished = False

@@ -76,6 +76,28 @@ def test_the_in_process_stream_keeps_exactly_the_ratio():
     assert replay.transitions_received == 67 and stream.batches == 23 and replay.limiter.due() == 0
 
 
+def test_the_limiter_takes_each_learner_s_count_from_its_first_request():
+    """A learner restarted from an older checkpoint has made fewer updates than the buffer served: the
+    limiter takes its count once, so those updates are served again; its later requests (whose counts lag
+    the batches in flight) and requests without a count change nothing."""
+    replay = _replay()
+    for i in range(10):
+        replay.store(make_episode(10, ret=float(i), seq=i))  # 100 transitions: 80 updates due after 20
+    first = P.SampleRequest(4, 8, learner=7, updates=0)
+    assert replay.answer(first.encode()).meta["batches"] == 4 and replay.limiter.samples == 4
+    replay.answer(P.SampleRequest(4, 8, learner=7, updates=1).encode())  # lagging count: ignored
+    assert replay.limiter.samples == 8 and replay.limiter_realigned == 0
+    # learner 9 restarted from a checkpoint at 2 updates: 6 served updates were lost with learner 7
+    reply = replay.answer(P.SampleRequest(4, 8, learner=9, updates=2).encode())
+    assert replay.limiter.samples == 2 + 4 and replay.limiter_realigned == 1 and reply.meta["batches"] == 4
+    replay.answer(P.SampleRequest(4, 8).encode())  # no learner, no count: an old client
+    assert replay.limiter.samples == 10 and replay.stats()["limiter_realigned"] == 1
+    with pytest.raises(P.ProtocolError, match="'updates' is -1"):
+        P.SampleRequest.decode(P._pack({"kind": "sample", "batches": 1, "batch_size": 8, "learner": 9, "updates": -1}))
+    assert P.SampleRequest.decode(P.SampleRequest(1, 8, learner=9, updates=5).encode()).updates == 5
+    assert P.SampleRequest.decode(P.SampleRequest(1, 8, learner=9).encode()).updates is None
+
+
 def test_a_buffer_that_restarted_from_an_older_checkpoint_is_counted():
     stream = BatchStream()
     for steps in (100, 250, 180, 300):
