@@ -18,7 +18,7 @@ defaults below before numpy or torch is loaded.
 import os
 import sys
 
-__version__ = "0.3.0"
+__version__ = "0.5.0"  # as pyproject.toml says (tests/test_config_cli.py); docs/protocol.md names what each release added
 
 # silcr processes share their machine with each other (a learner beside its actors,
 # several runs of a sweep), and thread pools that busy-wait collapse when another

@@ -45,6 +45,9 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
     parser = _Parser(prog="silcr", description="Distributed SILCR: self-imitation learning with constant reward.")
+    from silcr import __version__
+
+    parser.add_argument("--version", action="version", version=f"silcr {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
     subs: dict[str, argparse.ArgumentParser] = {}
     for role, text in ROLES_HELP.items():

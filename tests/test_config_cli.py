@@ -205,3 +205,14 @@ def test_many_actors_join_as_clients_of_the_router():
     assert actor_zenoh_mode(_resolve(["--actors", "128", "--actor-zenoh-mode", "peer"])) == "peer"
     assert actor_zenoh_mode(_resolve(["--actors", "2", "--actor-zenoh-mode", "client"])) == "client"
     assert actor_zenoh_mode(_resolve(["--actors", "2", "--zenoh-mode", "client"])) == "client"
+
+
+def test_silcr_version_is_the_package_version():
+    """`silcr --version` says the release pyproject.toml builds (the two once said 0.3.0 and 0.4.0)."""
+    import silcr
+
+    built = tomllib.loads((REPO / "pyproject.toml").read_text())["project"]["version"]
+    assert silcr.__version__ == built
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "--version"], capture_output=True, text=True, cwd=REPO,
+                       timeout=60)
+    assert r.returncode == 0 and r.stdout.strip() == f"silcr {built}"
