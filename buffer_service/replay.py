@@ -197,8 +197,9 @@ class ReplayState:
         Every batch served is one update, so the two counts agree until a component
         restarts from a checkpoint: a learner restarted from its last checkpoint (every
         `--checkpoint-interval` updates) lost the updates since, which the limiter still
-        counts as served, so the run would end "starved" that many updates short; a
-        buffer restarted from its last checkpoint counts fewer than the learner made. The
+        counts as served (a distributed run made them up with as many env steps past its
+        budget, a single-process one ended that many updates short); a buffer restarted
+        from its last checkpoint counts fewer than the learner made. The
         learner's count is the one its weights have seen, so the limiter takes it: lost
         updates are served again, and the actors re-collect what the buffer lost before
         the learner trains further. Later requests of the same learner change nothing
