@@ -29,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import contextlib
+import csv
 import io
 import json
 import os
@@ -147,10 +148,10 @@ def cell_detail(cell: Cell, run_dir: Path, state: str) -> str:
     if state == "partial":
         total = int(cell.options.get("total_steps", FIELDS["total_steps"].default))
         try:
-            lines = (run_dir / "progress.csv").read_text().strip().splitlines()
-            steps = lines[-1].split(",")[lines[0].split(",").index("env_steps")] if len(lines) > 1 else ""
-            parts.append(f"{int(float(steps)):,} of {total:,} env steps")
-        except (OSError, IndexError, ValueError):
+            with open(run_dir / "progress.csv", newline="") as f:
+                last = list(csv.DictReader(f))[-1]
+            parts.append(f"{int(float(last['env_steps'])):,} of {total:,} env steps")
+        except (OSError, IndexError, KeyError, ValueError, TypeError):
             parts.append("no progress.csv rows yet")
     try:
         check_free(run_dir)
