@@ -71,6 +71,9 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
                            "improvement over every other group is reported (a curve label, e.g. silcr)")
             p.add_argument("--reference", default=None, metavar="LABEL", help="with --stats: the group whose final return "
                            "is 1 in the normalisation over tasks (default: the sac-dense group)")
+            p.add_argument("--against", default=None, metavar="SETTING", help="with --stats: also the final return "
+                           "against this numeric config.toml setting (an ablation's axis, e.g. expert_capacity), "
+                           "per task with its interval, in the table and in <out>-against-SETTING.png")
             p.add_argument("--bootstrap-reps", type=int, default=2000, metavar="N", help="with --stats: bootstrap "
                            "replications per interval (default: 2000)")
             p.add_argument("--final-evals", type=int, default=1, metavar="K", help="a run's final return is the mean "

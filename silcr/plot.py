@@ -72,6 +72,13 @@ NOT_A_SETTING = {"run", "runs_dir", "seed", "resume", "connect", "listen", "zeno
 _DEFAULTS = Config(run="defaults").to_dict()
 
 
+def base_label(cfg: dict) -> str:
+    """The algorithm's name; only the algorithms that learn from the env's reward say which one they had."""
+    algo = cfg.get("algo", "?")
+    spec = ALGORITHMS.get(algo)
+    return f"{algo}-{cfg.get('reward', '')}" if spec is not None and spec.uses_env_reward else algo
+
+
 def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     try:
         # A run from before an option existed did what the option's default does (options are
@@ -97,10 +104,8 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     later_min = np.minimum.accumulate(steps[::-1])[::-1]
     keep = np.append(steps[:-1] <= later_min[1:], True)
     steps, values = steps[keep], values[keep]
-    algo = cfg.get("algo", "?")
-    spec = ALGORITHMS.get(algo)
-    # Only the algorithms that learn from the env's reward say which one they had.
-    label = f"{algo}-{cfg.get('reward', '')}" if spec is not None and spec.uses_env_reward else algo
+    label = base_label(cfg)
+    spec = ALGORITHMS.get(cfg.get("algo", "?"))
     if spec is not None and spec.ranks_own_episodes and cfg["expert_capacity"] != _DEFAULTS["expert_capacity"]:
         label += f" (M={cfg['expert_capacity']:.0e})".replace("e+0", "e")  # the M ablation: one curve per M
     past = [float(r["env_steps"]) for r in all_rows if (r.get("q_bound_exceeded") or "0") not in ("", "0")]
@@ -311,17 +316,27 @@ def plot_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
         for option, value in (("--compare", args.compare), ("--reference", args.reference)):
             if value is not None and value not in labels:
                 parser.error(f"{option} {value!r}: no such group (groups: {', '.join(sorted(labels, key=label_key))})")
-    elif args.compare or args.reference:
-        parser.error("--compare and --reference go with --stats rliable")
+        if args.against is not None:
+            from silcr.stats import setting_values
+
+            try:
+                setting_values(runs, args.against)
+            except ValueError as e:
+                parser.error(str(e))
+    elif args.compare or args.reference or args.against:
+        parser.error("--compare, --reference and --against go with --stats rliable")
     metric = "return" if args.metric == "eval_return" else args.metric
     plot(runs, out, args.expert, args.title, "evaluation return (dense)" if metric == "return" else args.metric, args.logy)
     table = summary_markdown(runs, metric, args.final_evals)
     if args.stats == "rliable":
-        from silcr.stats import rliable_report
+        from silcr.stats import against_report, rliable_report
 
         try:
             table += "\n" + rliable_report(runs, args.compare, args.reference, args.bootstrap_reps,
                                             figure=out.with_name(out.stem + "-stats.png"), final_evals=args.final_evals)
+            if args.against is not None:
+                table += "\n" + against_report(runs, args.against, args.bootstrap_reps, final_evals=args.final_evals,
+                                                figure=out.with_name(f"{out.stem}-against-{args.against}.png"))
         except ValueError as e:
             parser.error(str(e))
     print(table, end="")

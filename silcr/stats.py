@@ -10,7 +10,10 @@ rliable recommends, with its own code:
   return (by default SAC with the dense reward at the same budget), so tasks of
   different scales can be pooled;
 * the probability of improvement P(X > Y) of one group over each other, per task and
-  over tasks, with its interval: the chance that a run of X beats a run of Y on a task.
+  over tasks, with its interval: the chance that a run of X beats a run of Y on a task;
+* with `--against SETTING`, the final return against one numeric setting (an ablation's
+  axis, such as `expert_capacity`): per task, the IQM and its interval at each value,
+  one line per family of runs that share every other setting.
 
 A run's final return is its last evaluation (the mean over `--eval-episodes` episodes
 of the deterministic policy), or with `--final-evals K` the mean of its last K. rliable
@@ -26,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.plot import RunCurve, final_name, final_value, group, group_colours, label_key
+from silcr.plot import (NOT_A_SETTING, RunCurve, _applies, base_label, final_name, final_value, group,
+                        group_colours, label_key)
 
 #: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
 REPS = 2000
@@ -190,3 +194,112 @@ def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], o
                                                 xlabel="final return: IQM, 95% CI", row_height=0.5)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120, bbox_inches="tight")
+
+
+#: Settings read relative to the run's budget: an ablation over M reads as budget / M, the
+#: paper's axis (2M steps with M from 1e4 to 1e6 is budget/M from 200 to 2).
+PER_BUDGET = {"expert_capacity": "M"}
+
+
+def setting_values(runs: list[RunCurve], setting: str) -> list[float]:
+    """Each run's value of `setting`, which must be a number in every run's config.toml."""
+    values = []
+    for r in runs:
+        value = r.config.get(setting)
+        if value is None:
+            raise ValueError(f"--against {setting}: no such setting in {r.path / 'config.toml'}")
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            raise ValueError(f"--against {setting}: {r.path} has {setting} = {value!r}, not a number "
+                             "(give a numeric setting of config.toml, e.g. expert_capacity or tau)")
+        values.append(float(value))
+    return values
+
+
+def families(runs: list[RunCurve], setting: str) -> list[str]:
+    """Each run's line in the --against figure: its algorithm plus every other setting that differs
+    between the runs (as curve labels are made), so only runs that differ in `setting` alone share a line."""
+    label_settings = {"algo", "reward", "expert_capacity", "demos"}
+    keys = sorted({k for r in runs for k in r.config} - (NOT_A_SETTING - label_settings) - {setting, "env"})
+    differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs if _applies(k, r)}) > 1
+                 and k not in ("algo", "reward")]  # already in base_label
+    return [" ".join([base_label(r.config)] + [f"{k}={r.config.get(k)}" for k in differing if _applies(k, r)])
+            for r in runs]
+
+
+def against_report(runs: list[RunCurve], setting: str, reps: int = REPS, seed: int = 0, figure: Path | None = None,
+                   final_evals: int = 1) -> str:
+    """The final return against `setting`: a Markdown table and, with `figure`, one panel per task."""
+    with _quiet_bootstrap():
+        return _against(runs, setting, reps, seed, figure, final_evals)
+
+
+def _against(runs: list[RunCurve], setting: str, reps: int, seed: int, figure: Path | None, final_evals: int) -> str:
+    rly, metrics = require_rliable()
+    iqm = lambda x: np.array([metrics.aggregate_iqm(x)])  # noqa: E731
+    values = setting_values(runs, setting)
+    cells: dict[str, dict[str, dict[float, list[RunCurve]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
+    for r, family, value in zip(runs, families(runs, setting), values):
+        cells[r.env][family][value].append(r)
+    budgets = {r.config.get("total_steps") for r in runs}
+    ratio = PER_BUDGET.get(setting) if len(budgets) == 1 and None not in budgets else None
+    budget = float(next(iter(budgets))) if ratio else 0.0
+    lines = [f"{final_name('return', final_evals).capitalize()} against {setting}: interquartile mean over the seeds "
+             f"at each value, 95% stratified bootstrap interval ({reps} replications, rliable).", "",
+             f"| env | line | {setting} |" + (f" budget / {ratio} |" if ratio else "") + " seeds | IQM [95% CI] |",
+             "|---|---|---|" + ("---|" if ratio else "") + "---|---|"]
+    estimates: dict[str, dict[str, list[tuple[float, float, np.ndarray, np.ndarray]]]] = defaultdict(dict)
+    for env in sorted(cells):
+        for family in sorted(cells[env], key=label_key):
+            estimates[env][family] = []
+            for value in sorted(cells[env][family]):
+                scores = _final(cells[env][family][value], final_evals)
+                point, interval = rly.get_interval_estimates({"x": scores[:, None]}, iqm, reps=reps,
+                                                             random_state=np.random.RandomState(seed))
+                estimates[env][family].append((value, float(point["x"][0]), interval["x"][:, 0], scores))
+                lines.append(f"| {env} | {family} | {value:g} |" + (f" {budget / value:g} |" if ratio else "")
+                             + f" {len(scores)} | {_ci(float(point['x'][0]), interval['x'][:, 0], len(scores))} |")
+    if figure is not None:
+        _against_figure(estimates, setting, figure, budget if ratio else None, ratio)
+    return "\n".join(lines) + "\n"
+
+
+def _against_figure(estimates: dict[str, dict[str, list[tuple[float, float, np.ndarray, np.ndarray]]]], setting: str,
+                    out: Path,
+                    budget: float | None, ratio: str | None) -> None:
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    envs = sorted(estimates)
+    colour = group_colours({family for env in envs for family in estimates[env]})
+    cols = min(3, len(envs))
+    rows = (len(envs) + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
+    for ax, env in zip(axes.flat, envs):
+        xs = [point[0] for points in estimates[env].values() for point in points]
+        logx = min(xs) > 0 and max(xs) >= 10 * min(xs)  # an ablation over orders of magnitude
+        beside = (lambda v: v * 1.06) if logx else (lambda v: v + 0.015 * (max(xs) - min(xs) or 1.0))  # noqa: E731
+        for family in sorted(estimates[env], key=label_key):
+            x, y, ci = (np.array(column, dtype=np.float64) for column in list(zip(*estimates[env][family]))[:3])
+            ax.errorbar(x, y, yerr=np.abs(ci.T - y), marker="o", capsize=3, color=colour[family], label=family)
+            for value, _, _, scores in estimates[env][family]:  # each seed too, just beside its interval
+                ax.scatter(np.full(len(scores), beside(value)), scores, s=14, marker="x", color=colour[family], alpha=0.6)
+        if logx:
+            ax.set_xscale("log")
+        if budget:
+            top = ax.secondary_xaxis("top", functions=(lambda v: budget / np.maximum(v, 1e-12),
+                                                       lambda v: budget / np.maximum(v, 1e-12)))
+            shown = sorted(set(xs))
+            top.set_xticks([budget / x for x in shown], [f"{budget / x:g}" for x in shown])  # at the points only
+            top.set_xlabel(f"budget / {ratio}")
+        ax.set_title(env)
+        ax.set_xlabel(setting)
+        ax.set_ylabel("final return: IQM, 95% CI (x: each seed)")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize="small")
+    for ax in list(axes.flat)[len(envs):]:
+        ax.set_visible(False)
+    fig.tight_layout()
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120)

@@ -343,3 +343,41 @@ def test_sweep_cells_are_labelled_by_their_variants_unless_one_name_covers_two_s
     Config(run="mine", env="MiniGrid-Empty-8x8-v0").save(plain / "config.toml")
     (plain / "progress.csv").write_text("env_steps,eval_return\n0,0\n")
     assert not label_by_variant([load_run(study[0]), load_run(plain)])
+
+
+def test_plot_against_a_setting_gives_the_final_return_at_each_value_one_line_per_family(tmp_path):
+    """An ablation over M: the IQM at each M (three seeds whose IQM is their mean), the budget / M
+    column, and a run with another tau on a line of its own rather than pooled into the M = 5,000 point."""
+    pytest.importorskip("rliable")
+    dirs = []
+    for m, finals in ((1000, [10.0, 20.0, 30.0]), (5000, [40.0, 50.0, 60.0]), (100000, [1.0, 2.0, 3.0])):
+        for seed, final in enumerate(finals):
+            d = tmp_path / f"silcr-M{m}_HalfCheetah-v5_s{seed}"
+            d.mkdir()
+            Config(run=d.name, env="HalfCheetah-v5", algo="silcr", seed=seed, expert_capacity=m,
+                   total_steps=200_000).save(d / "config.toml")
+            (d / "progress.csv").write_text(f"time,env_steps,updates,policy_version,eval_return\n0,0,0,0,0\n1,1000,1,0,{final}\n")
+            dirs.append(d)
+    other = tmp_path / "silcr-tau_HalfCheetah-v5_s0"
+    other.mkdir()
+    Config(run=other.name, env="HalfCheetah-v5", algo="silcr", seed=0, expert_capacity=5000, total_steps=200_000,
+           tau=0.01).save(other / "config.toml")
+    (other / "progress.csv").write_text("time,env_steps,updates,policy_version,eval_return\n0,0,0,0,0\n1,1000,1,0,999\n")
+    out = tmp_path / "fig.png"
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), str(other), "-o", str(out),
+                        "--stats", "rliable", "--against", "expert_capacity", "--bootstrap-reps", "200"],
+                       capture_output=True, text=True, cwd=REPO, timeout=300)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "| HalfCheetah-v5 | silcr tau=0.005 | 1000 | 200 | 3 | 20.00 [" in r.stdout
+    assert "| HalfCheetah-v5 | silcr tau=0.005 | 5000 | 40 | 3 | 50.00 [" in r.stdout  # not pooled with tau=0.01's 999
+    assert "| HalfCheetah-v5 | silcr tau=0.005 | 100000 | 2 | 3 | 2.00 [" in r.stdout
+    assert "| HalfCheetah-v5 | silcr tau=0.01 | 5000 | 40 | 1 | 999.00 (one seed: no interval) |" in r.stdout
+    assert (tmp_path / "fig-against-expert_capacity.png").stat().st_size > 1000
+    for option, message in ((["--stats", "rliable", "--against", "reward"], "--against reward: "),
+                            (["--stats", "rliable", "--against", "no_such"], "--against no_such: no such setting"),
+                            (["--against", "expert_capacity"], "--against go with --stats rliable")):
+        fresh = tmp_path / "bad" / "fig.png"
+        bad = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(fresh), *option],
+                             capture_output=True, text=True, cwd=REPO, timeout=120)
+        assert bad.returncode == 2 and message in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
+        assert not (tmp_path / "bad").exists()  # refused before any file
