@@ -241,7 +241,7 @@ def _against(runs: list[RunCurve], setting: str, reps: int, seed: int, figure: P
     for r, family, value in zip(runs, families(runs, setting), values):
         cells[r.env][family][value].append(r)
     budgets = {r.config.get("total_steps") for r in runs}
-    ratio = PER_BUDGET.get(setting) if len(budgets) == 1 and None not in budgets else None
+    ratio = PER_BUDGET.get(setting) if len(budgets) == 1 and None not in budgets and min(values) > 0 else None
     budget = float(next(iter(budgets))) if ratio else 0.0
     lines = [f"{final_name('return', final_evals).capitalize()} against {setting}: interquartile mean over the seeds "
              f"at each value, 95% stratified bootstrap interval ({reps} replications, rliable).", "",
@@ -264,8 +264,7 @@ def _against(runs: list[RunCurve], setting: str, reps: int, seed: int, figure: P
 
 
 def _against_figure(estimates: dict[str, dict[str, list[tuple[float, float, np.ndarray, np.ndarray]]]], setting: str,
-                    out: Path,
-                    budget: float | None, ratio: str | None) -> None:
+                    out: Path, budget: float | None, ratio: str | None) -> None:
     import matplotlib
 
     matplotlib.use("Agg")
