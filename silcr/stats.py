@@ -83,6 +83,25 @@ def _final(runs: list[RunCurve], evals: int) -> np.ndarray:
     return np.array([final_value(r, evals) for r in runs], np.float64)
 
 
+def _estimates(rly, scores: dict, func, reps: int, seed: int) -> tuple[dict, dict]:
+    """rliable's interval estimates, one key at a time, each from the same draws. rliable's
+    StratifiedBootstrap takes `random_state` but draws its indices from NumPy's global generator
+    (`np.random.choice`), so without this an interval would depend on every estimate made before
+    it in the process (which tasks and groups were plotted together). The global generator is
+    seeded for each key and given back its state after."""
+    points, intervals = {}, {}
+    for key, value in scores.items():
+        state = np.random.get_state()
+        np.random.seed(seed)
+        try:
+            point, interval = rly.get_interval_estimates({key: value}, func, reps=reps,
+                                                         random_state=np.random.RandomState(seed))
+        finally:
+            np.random.set_state(state)
+        points[key], intervals[key] = point[key], interval[key]
+    return points, intervals
+
+
 def default_reference(labels: set[str]) -> str | None:
     return next((label for label in sorted(labels) if label.startswith("sac-dense")), None)
 
@@ -100,7 +119,6 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
     groups = group(runs)
     envs = sorted(groups)
     labels = sorted({label for env in envs for label in groups[env]}, key=label_key)
-    rng = lambda: np.random.RandomState(seed)  # noqa: E731 - the same draws for every estimate
     iqm = lambda x: np.array([metrics.aggregate_iqm(x)])  # noqa: E731
     lines = [f"{final_name('return', final_evals).capitalize()}: interquartile mean over seeds, 95% stratified "
              f"bootstrap interval ({reps} replications, "
@@ -109,8 +127,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
     for env in envs:
         for label in sorted(groups[env], key=label_key):
             scores = _final(groups[env][label], final_evals)
-            point, interval = rly.get_interval_estimates({label: scores[:, None]}, iqm, reps=reps,
-                                                         random_state=rng())
+            point, interval = _estimates(rly, {label: scores[:, None]}, iqm, reps, seed)
             per_task[env][label] = (float(point[label][0]), interval[label][:, 0])
             lines.append(f"| {env} | {label} | {len(scores)} | {_ci(*per_task[env][label], len(scores))} |")
 
@@ -130,7 +147,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
                 columns.append((_final(groups[env][label], final_evals) - zero) / (one - zero if one != zero else 1.0))
             n = min(len(c) for c in columns)  # rliable wants runs x tasks: the fewest seeds any task has
             normalised[label] = np.stack([c[:n] for c in columns], axis=1)
-        points, intervals = rly.get_interval_estimates(normalised, iqm, reps=reps, random_state=rng())
+        points, intervals = _estimates(rly, normalised, iqm, reps, seed)
         for label in complete:
             runs_per_task = normalised[label].shape[0]
             lines.append(f"| {label} | {runs_per_task} | {_ci(points[label][0], intervals[label][:, 0], runs_per_task)} |")
@@ -150,16 +167,14 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
                     continue
                 pair = {other: (_final(groups[env][compare], final_evals)[:, None],
                                 _final(groups[env][other], final_evals)[:, None])}
-                points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement, reps=reps,
-                                                               random_state=rng())
+                points, intervals = _estimates(rly, pair, metrics.probability_of_improvement, reps, seed)
                 lines.append(f"| {env} | {other} | "
                              f"{_pair_ci(float(points[other]), intervals[other][:, 0], pair[other], (compare, other))} |")
         if compare in normalised:
             for other in others:
                 if other in normalised:
                     pair = {other: (normalised[compare], normalised[other])}
-                    points, intervals = rly.get_interval_estimates(pair, metrics.probability_of_improvement,
-                                                                   reps=reps, random_state=rng())
+                    points, intervals = _estimates(rly, pair, metrics.probability_of_improvement, reps, seed)
                     lines.append(f"| all {_tasks(len(envs))} | {other} | "
                                  f"{_pair_ci(float(points[other]), intervals[other][:, 0], pair[other], (compare, other))} |")
     if figure is not None:
@@ -253,8 +268,7 @@ def _against(runs: list[RunCurve], setting: str, reps: int, seed: int, figure: P
             estimates[env][family] = []
             for value in sorted(cells[env][family]):
                 scores = _final(cells[env][family][value], final_evals)
-                point, interval = rly.get_interval_estimates({"x": scores[:, None]}, iqm, reps=reps,
-                                                             random_state=np.random.RandomState(seed))
+                point, interval = _estimates(rly, {"x": scores[:, None]}, iqm, reps, seed)
                 estimates[env][family].append((value, float(point["x"][0]), interval["x"][:, 0], scores))
                 lines.append(f"| {env} | {family} | {value:g} |" + (f" {budget / value:g} |" if ratio else "")
                              + f" {len(scores)} | {_ci(float(point['x'][0]), interval['x'][:, 0], len(scores))} |")

@@ -381,3 +381,22 @@ def test_plot_against_a_setting_gives_the_final_return_at_each_value_one_line_pe
                              capture_output=True, text=True, cwd=REPO, timeout=120)
         assert bad.returncode == 2 and message in bad.stderr and "Traceback" not in bad.stderr, bad.stderr
         assert not (tmp_path / "bad").exists()  # refused before any file
+
+
+def test_an_interval_does_not_depend_on_the_other_runs_plotted_with_it(tmp_path):
+    """rliable's bootstrap draws from NumPy's global generator whatever random_state it is given, so
+    one task's interval once changed with the tasks sorted before it; each estimate now has its own draws."""
+    pytest.importorskip("rliable")
+    from silcr.stats import rliable_report
+
+    hopper = [load_run(_fake_run(tmp_path, "Hopper-v5", "silcr", s, [0, 1000], [0.0, v]))
+              for s, v in enumerate([1183.0, 2108.0, 3160.0])]
+    before = [load_run(_fake_run(tmp_path, "Ant-v5", "silcr", s, [0, 1000], [0.0, v])) for s, v in enumerate([5.0, 9.0, 1.0])]
+
+    def hopper_line(runs):
+        return next(line for line in rliable_report(runs, reps=200).splitlines() if line.startswith("| Hopper-v5 | silcr"))
+
+    alone = hopper_line(hopper)
+    assert hopper_line(before + hopper) == alone
+    np.random.seed(123)  # nor on the caller's use of the global generator
+    assert hopper_line(hopper) == alone
