@@ -193,22 +193,30 @@ def _steps_tick(value: float, _position: int) -> str:
     return f"{value:g}"
 
 
+def panels(count: int):
+    """A figure with one panel per task, three to a row; the grid's unused panels hidden."""
+    import matplotlib.pyplot as plt
+
+    cols = min(3, count)
+    rows = (count + cols - 1) // cols
+    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
+    for ax in list(axes.flat)[count:]:
+        ax.set_visible(False)
+    return fig, list(axes.flat)[:count]
+
+
 def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: str = "", ylabel: str = "evaluation return (dense)",
          logy: bool = False):
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     from matplotlib.ticker import FuncFormatter
 
     groups = group(runs)
     envs = sorted(groups)
     colour = group_colours({r.algo for r in runs})
-    cols = min(3, len(envs))
-    rows = (len(envs) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
-    for ax, env in zip(axes.flat, envs):
+    fig, axes = panels(len(envs))
+    for ax, env in zip(axes, envs):
         for algo in sorted(groups[env], key=label_key):
             seeds = groups[env][algo]
             label = f"{algo} ({len(seeds)} seed{'s' if len(seeds) > 1 else ''})"
@@ -231,8 +239,6 @@ def plot(runs: list[RunCurve], out: Path, expert: float | None = None, title: st
             ax.set_yscale("log" if positive else "symlog")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")
-    for ax in list(axes.flat)[len(envs):]:
-        ax.set_visible(False)
     if title:
         fig.suptitle(title)
     fig.tight_layout()

@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from silcr.plot import (NOT_A_SETTING, RunCurve, _applies, base_label, final_name, final_value, group,
-                        group_colours, label_key)
+                        group_colours, label_key, panels)
 
 #: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
 REPS = 2000
@@ -282,14 +282,10 @@ def _against_figure(estimates: dict[str, dict[str, list[tuple[float, float, np.n
     import matplotlib
 
     matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
     envs = sorted(estimates)
     colour = group_colours({family for env in envs for family in estimates[env]})
-    cols = min(3, len(envs))
-    rows = (len(envs) + cols - 1) // cols
-    fig, axes = plt.subplots(rows, cols, figsize=(5 * cols, 3.6 * rows), squeeze=False)
-    for ax, env in zip(axes.flat, envs):
+    fig, axes = panels(len(envs))
+    for ax, env in zip(axes, envs):
         xs = [point[0] for points in estimates[env].values() for point in points]
         logx = min(xs) > 0 and max(xs) >= 10 * min(xs)  # an ablation over orders of magnitude
         beside = (lambda v: v * 1.06) if logx else (lambda v: v + 0.015 * (max(xs) - min(xs) or 1.0))  # noqa: E731
@@ -311,8 +307,6 @@ def _against_figure(estimates: dict[str, dict[str, list[tuple[float, float, np.n
         ax.set_ylabel("final return: IQM, 95% CI (x: each seed)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize="small")
-    for ax in list(axes.flat)[len(envs):]:
-        ax.set_visible(False)
     fig.tight_layout()
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120)
