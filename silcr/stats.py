@@ -83,6 +83,11 @@ def _final(runs: list[RunCurve], evals: int) -> np.ndarray:
     return np.array([final_value(r, evals) for r in runs], np.float64)
 
 
+def _iqm(metrics):
+    """rliable's interquartile mean in the shape its bootstrap wants (an array of estimates)."""
+    return lambda scores: np.array([metrics.aggregate_iqm(scores)])
+
+
 def _estimates(rly, scores: dict, func, reps: int, seed: int) -> tuple[dict, dict]:
     """rliable's interval estimates, one key at a time, each from the same draws. rliable's
     StratifiedBootstrap takes `random_state` but draws its indices from NumPy's global generator
@@ -119,7 +124,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
     groups = group(runs)
     envs = sorted(groups)
     labels = sorted({label for env in envs for label in groups[env]}, key=label_key)
-    iqm = lambda x: np.array([metrics.aggregate_iqm(x)])  # noqa: E731
+    iqm = _iqm(metrics)
     lines = [f"{final_name('return', final_evals).capitalize()}: interquartile mean over seeds, 95% stratified "
              f"bootstrap interval ({reps} replications, "
              f"rliable).", "", "| env | group | seeds | IQM [95% CI] |", "|---|---|---|---|"]
@@ -233,7 +238,8 @@ def setting_values(runs: list[RunCurve], setting: str) -> list[float]:
 def families(runs: list[RunCurve], setting: str) -> list[str]:
     """Each run's line in the --against figure: its algorithm plus every other setting that differs
     between the runs (as curve labels are made), so only runs that differ in `setting` alone share a line."""
-    label_settings = {"algo", "reward", "expert_capacity", "demos"}
+    # total_steps too: a final return at another budget is another experiment, not another seed.
+    label_settings = {"algo", "reward", "expert_capacity", "demos", "total_steps"}
     keys = sorted({k for r in runs for k in r.config} - (NOT_A_SETTING - label_settings) - {setting, "env"})
     differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs if _applies(k, r)}) > 1
                  and k not in ("algo", "reward")]  # already in base_label
@@ -250,14 +256,14 @@ def against_report(runs: list[RunCurve], setting: str, reps: int = REPS, seed: i
 
 def _against(runs: list[RunCurve], setting: str, reps: int, seed: int, figure: Path | None, final_evals: int) -> str:
     rly, metrics = require_rliable()
-    iqm = lambda x: np.array([metrics.aggregate_iqm(x)])  # noqa: E731
+    iqm = _iqm(metrics)
     values = setting_values(runs, setting)
     cells: dict[str, dict[str, dict[float, list[RunCurve]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     for r, family, value in zip(runs, families(runs, setting), values):
         cells[r.env][family][value].append(r)
     budgets = {r.config.get("total_steps") for r in runs}
-    ratio = PER_BUDGET.get(setting) if len(budgets) == 1 and None not in budgets and min(values) > 0 else None
-    budget = float(next(iter(budgets))) if ratio else 0.0
+    ratio = PER_BUDGET.get(setting) if None not in budgets and min(values) > 0 else None
+    budget = float(next(iter(budgets))) if ratio and len(budgets) == 1 else 0.0  # the figure's top axis
     lines = [f"{final_name('return', final_evals).capitalize()} against {setting}: interquartile mean over the seeds "
              f"at each value, 95% stratified bootstrap interval ({reps} replications, rliable).", "",
              f"| env | line | {setting} |" + (f" budget / {ratio} |" if ratio else "") + " seeds | IQM [95% CI] |",
@@ -270,10 +276,11 @@ def _against(runs: list[RunCurve], setting: str, reps: int, seed: int, figure: P
                 scores = _final(cells[env][family][value], final_evals)
                 point, interval = _estimates(rly, {"x": scores[:, None]}, iqm, reps, seed)
                 estimates[env][family].append((value, float(point["x"][0]), interval["x"][:, 0], scores))
-                lines.append(f"| {env} | {family} | {value:g} |" + (f" {budget / value:g} |" if ratio else "")
+                own_budget = float(cells[env][family][value][0].config["total_steps"]) if ratio else 0.0  # one per family
+                lines.append(f"| {env} | {family} | {value:g} |" + (f" {own_budget / value:g} |" if ratio else "")
                              + f" {len(scores)} | {_ci(float(point['x'][0]), interval['x'][:, 0], len(scores))} |")
     if figure is not None:
-        _against_figure(estimates, setting, figure, budget if ratio else None, ratio)
+        _against_figure(estimates, setting, figure, budget or None, ratio)
     return "\n".join(lines) + "\n"
 
 

@@ -363,15 +363,22 @@ def test_plot_against_a_setting_gives_the_final_return_at_each_value_one_line_pe
     Config(run=other.name, env="HalfCheetah-v5", algo="silcr", seed=0, expert_capacity=5000, total_steps=200_000,
            tau=0.01).save(other / "config.toml")
     (other / "progress.csv").write_text("time,env_steps,updates,policy_version,eval_return\n0,0,0,0,0\n1,1000,1,0,999\n")
+    longer = tmp_path / "silcr-2M_HalfCheetah-v5_s0"  # another budget: another experiment, its own line and ratio
+    longer.mkdir()
+    Config(run=longer.name, env="HalfCheetah-v5", algo="silcr", seed=0, expert_capacity=5000,
+           total_steps=2_000_000).save(longer / "config.toml")
+    (longer / "progress.csv").write_text("time,env_steps,updates,policy_version,eval_return\n0,0,0,0,0\n1,1000,1,0,777\n")
     out = tmp_path / "fig.png"
-    r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), str(other), "-o", str(out),
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), str(other), str(longer), "-o", str(out),
                         "--stats", "rliable", "--against", "expert_capacity", "--bootstrap-reps", "200"],
                        capture_output=True, text=True, cwd=REPO, timeout=300)
     assert r.returncode == 0, r.stdout + r.stderr
-    assert "| HalfCheetah-v5 | silcr tau=0.005 | 1000 | 200 | 3 | 20.00 [" in r.stdout
-    assert "| HalfCheetah-v5 | silcr tau=0.005 | 5000 | 40 | 3 | 50.00 [" in r.stdout  # not pooled with tau=0.01's 999
-    assert "| HalfCheetah-v5 | silcr tau=0.005 | 100000 | 2 | 3 | 2.00 [" in r.stdout
-    assert "| HalfCheetah-v5 | silcr tau=0.01 | 5000 | 40 | 1 | 999.00 (one seed: no interval) |" in r.stdout
+    assert "| HalfCheetah-v5 | silcr tau=0.005 total_steps=200000 | 1000 | 200 | 3 | 20.00 [" in r.stdout
+    # not pooled with tau=0.01's 999 nor with the 2M-step run's 777
+    assert "| HalfCheetah-v5 | silcr tau=0.005 total_steps=200000 | 5000 | 40 | 3 | 50.00 [" in r.stdout
+    assert "| HalfCheetah-v5 | silcr tau=0.005 total_steps=200000 | 100000 | 2 | 3 | 2.00 [" in r.stdout
+    assert "| HalfCheetah-v5 | silcr tau=0.01 total_steps=200000 | 5000 | 40 | 1 | 999.00 (one seed: no interval) |" in r.stdout
+    assert "| HalfCheetah-v5 | silcr tau=0.005 total_steps=2000000 | 5000 | 400 | 1 | 777.00 (one seed" in r.stdout
     assert (tmp_path / "fig-against-expert_capacity.png").stat().st_size > 1000
     for option, message in ((["--stats", "rliable", "--against", "reward"], "--against reward: "),
                             (["--stats", "rliable", "--against", "no_such"], "--against no_such: no such setting"),
