@@ -143,10 +143,15 @@ def _applies(key: str, run: RunCurve) -> bool:
     return key not in ALGORITHM_OPTIONS or (spec is not None and key in spec.options)
 
 
+def differing_settings(runs: list[RunCurve], excluded: set[str]) -> list[str]:
+    """The config keys, less `excluded`, whose values differ between the runs they apply to."""
+    keys = sorted({k for r in runs for k in r.config} - excluded)
+    return [k for k in keys if len({repr(r.config.get(k)) for r in runs if _applies(k, r)}) > 1]
+
+
 def distinguish(runs: list[RunCurve]) -> list[RunCurve]:
     """Add to each label the settings that differ between `runs` (so different settings never share a curve)."""
-    keys = sorted({k for r in runs for k in r.config} - NOT_A_SETTING)
-    differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs if _applies(k, r)}) > 1]
+    differing = differing_settings(runs, NOT_A_SETTING)
     for r in runs:
         extra = " ".join(f"{k}={r.config.get(k) if r.config.get(k) != '' else 'none'}" for k in differing if _applies(k, r))
         r.algo = f"{r.algo} {extra}" if extra else r.algo

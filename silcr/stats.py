@@ -29,8 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.plot import (NOT_A_SETTING, RunCurve, _applies, base_label, final_name, final_value, group,
-                        group_colours, label_key, panels)
+from silcr.plot import (NOT_A_SETTING, RunCurve, _applies, base_label, differing_settings, final_name, final_value,
+                        group, group_colours, label_key, panels)
 
 #: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
 REPS = 2000
@@ -238,11 +238,10 @@ def setting_values(runs: list[RunCurve], setting: str) -> list[float]:
 def families(runs: list[RunCurve], setting: str) -> list[str]:
     """Each run's line in the --against figure: its algorithm plus every other setting that differs
     between the runs (as curve labels are made), so only runs that differ in `setting` alone share a line."""
-    # total_steps too: a final return at another budget is another experiment, not another seed.
-    label_settings = {"algo", "reward", "expert_capacity", "demos", "total_steps"}
-    keys = sorted({k for r in runs for k in r.config} - (NOT_A_SETTING - label_settings) - {setting, "env"})
-    differing = [k for k in keys if len({repr(r.config.get(k)) for r in runs if _applies(k, r)}) > 1
-                 and k not in ("algo", "reward")]  # already in base_label
+    # Curve labels name M and demos; total_steps too here: a final return at another budget is
+    # another experiment, not another seed. The algorithm and its reward are in base_label already.
+    label_settings = {"expert_capacity", "demos", "total_steps"}
+    differing = differing_settings(runs, (NOT_A_SETTING - label_settings) | {setting})
     return [" ".join([base_label(r.config)] + [f"{k}={r.config.get(k)}" for k in differing if _applies(k, r)])
             for r in runs]
 
