@@ -89,6 +89,27 @@ def test_recorded_matmuls_are_the_counted_flops():
     assert matmul_only_rate(calls, torch.device("cpu"), 0.05) > 0
 
 
+def test_a_process_cpu_time_is_read_finer_than_a_clock_tick():
+    """The scale bench's CPU figures resolve less than /proc's 10 ms tick: a router relaying two
+    actors uses about 15 ms in a 5 s window, which ticks could read as 0 (a CI run did)."""
+    import os
+    import subprocess
+    import sys
+    import time
+
+    from silcr.bench.scale import _cpu_seconds
+
+    before = _cpu_seconds(os.getpid())
+    start = time.process_time()
+    while time.process_time() - start < 0.003:  # 3 ms of this process's CPU, under one tick
+        pass
+    used = _cpu_seconds(os.getpid()) - before
+    assert 0.002 < used < 0.008, used
+    gone = subprocess.Popen([sys.executable, "-c", "pass"])
+    gone.wait()
+    assert _cpu_seconds(gone.pid) is None
+
+
 def test_the_scale_bench_measures_a_real_run_and_loses_nothing(tmp_path):
     """`silcr bench scale --quick` at 2 actors: every quantity issue 20 asks for is measured, and no
     episode is lost (no gap in any actor's sequence numbers, none left in the inbox)."""
