@@ -183,18 +183,22 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
                     lines.append(f"| all {_tasks(len(envs))} | {other} | "
                                  f"{_pair_ci(float(points[other]), intervals[other][:, 0], pair[other], (compare, other))} |")
     if figure is not None:
-        _interval_figure(per_task, figure)
+        seeds = {env: {label: len(runs_) for label, runs_ in groups[env].items()} for env in envs}
+        _interval_figure(per_task, seeds, figure)
     return "\n".join(lines) + "\n"
 
 
-def figure_labels(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], labels: list[str]) -> dict[str, str]:
-    """The interval figure's name for each group: a one-seed group's interval has no width, and a bar
-    of no width reads as a certain value, so its name says why."""
-    return {label: f"{label} (one seed)" if all(np.ptp(per_task[env][label][1]) == 0 for env in per_task) else label
+def figure_labels(seeds: dict[str, dict[str, int]], labels: list[str]) -> dict[str, str]:
+    """The interval figure's name for each group (`seeds`: task -> group -> its runs there). A one-seed
+    group's interval has no width, and a bar of no width reads as a certain value, so its name says
+    why. The seeds are counted, not read off the bar: three seeds that all score 0 have no width
+    either, and they are not one seed."""
+    return {label: f"{label} (one seed)" if all(seeds[env].get(label, 0) <= 1 for env in seeds) else label
             for label in labels}
 
 
-def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], out: Path) -> None:
+def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], seeds: dict[str, dict[str, int]],
+                     out: Path) -> None:
     """rliable's interval plot: one panel per task, one bar per group present on every task."""
     import matplotlib
 
@@ -205,13 +209,22 @@ def _interval_figure(per_task: dict[str, dict[str, tuple[float, np.ndarray]]], o
     labels = sorted(set.intersection(*(set(per_task[env]) for env in envs)), key=label_key)
     if not labels:
         return
-    shown = figure_labels(per_task, labels)
+    shown = figure_labels(seeds, labels)
     points = {shown[label]: np.array([per_task[env][label][0] for env in envs]) for label in labels}
     intervals = {shown[label]: np.stack([per_task[env][label][1] for env in envs], axis=1) for label in labels}
     colour = group_colours({label for env in envs for label in per_task[env]})  # as in the curves' figure
-    fig, _ = plot_utils.plot_interval_estimates(points, intervals, envs, [shown[label] for label in labels],
-                                                colors={shown[label]: colour[label] for label in labels},
-                                                xlabel="final return: IQM, 95% CI", row_height=0.5)
+    row_height = 0.5
+    # rliable places the x label at a fixed fraction of the figure's height (-0.1), which lands on
+    # the tick labels of a figure a few rows high; 0.45 inches below the axes clears them.
+    fig, axes = plot_utils.plot_interval_estimates(points, intervals, envs, [shown[label] for label in labels],
+                                                   colors={shown[label]: colour[label] for label in labels},
+                                                   xlabel="final return: IQM, 95% CI", row_height=row_height,
+                                                   xlabel_y_coordinate=-0.45 / (row_height * len(labels)))
+    for ax in np.atleast_1d(axes):
+        # A one-seed group's bar has no width: at the axis' end it was cut in half. Bars hold the
+        # axis to their ends (sticky edges), so the margin needs them released.
+        ax.use_sticky_edges = False
+        ax.margins(x=0.03)
     out.parent.mkdir(parents=True, exist_ok=True)
     fig.savefig(out, dpi=120, bbox_inches="tight")
 

@@ -232,28 +232,41 @@ def test_groups_are_listed_with_the_numbers_in_their_names_in_order(tmp_path):
 
 def test_the_interval_figure_colours_each_group_as_the_curves_do(tmp_path, monkeypatch):
     """The curves colour groups in sorted order over all of them; the interval figure (which shows only
-    groups on every task) must give each the same colour, not rliable's palette in its own order."""
+    groups on every task) must give each the same colour, not rliable's palette in its own order.
+    Its x label clears the tick labels, and a one-seed group's zero-width bar at the end of the
+    axis is drawn whole."""
     pytest.importorskip("rliable")
     from rliable import plot_utils
 
     from silcr.plot import group_colours
     from silcr.stats import _interval_figure
 
-    seen = {}
+    seen, drawn = {}, []
     real = plot_utils.plot_interval_estimates
 
     def spy(*args, **kwargs):
         seen.update(kwargs["colors"])
-        return real(*args, **kwargs)
+        drawn.append(real(*args, **kwargs))
+        return drawn[-1]
 
     monkeypatch.setattr(plot_utils, "plot_interval_estimates", spy)
     three, one = (20.0, np.array([10.0, 30.0])), (5.0, np.array([5.0, 5.0]))
     per_task = {"A": {"ircr": three, "sac-dense": one, "silcr": three, "gasil": three},
                 "B": {"ircr": three, "sac-dense": one, "silcr": three}}  # gasil on one task only: not in the figure
-    _interval_figure(per_task, tmp_path / "f.png")
+    seeds = {env: {label: 1 if label == "sac-dense" else 3 for label in groups} for env, groups in per_task.items()}
+    _interval_figure(per_task, seeds, tmp_path / "f.png")
     colour = group_colours({"gasil", "ircr", "sac-dense", "silcr"})  # what the curves' figure uses
     assert seen == {"ircr": colour["ircr"], "sac-dense (one seed)": colour["sac-dense"], "silcr": colour["silcr"]}
     assert len(set(seen.values())) == 3 and (tmp_path / "f.png").stat().st_size > 1000
+    fig, axes = drawn[0]
+    renderer = fig.canvas.get_renderer()
+    (xlabel,) = fig.texts
+    label_box = xlabel.get_window_extent(renderer)
+    for ax in axes:
+        assert ax.get_xlim()[0] < 5.0  # sac-dense's 5.0 is the lowest value: inside the axis, not on its edge
+        for tick in ax.get_xticklabels():
+            if tick.get_visible() and tick.get_text():
+                assert not label_box.overlaps(tick.get_window_extent(renderer)), tick.get_text()
 
 
 def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probability_of_improvement(tmp_path):
@@ -283,11 +296,11 @@ def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probabi
     assert "| Hopper-v5 | ircr | 1.00 [1.00, 1.00] |" in table  # every silcr run beats every ircr run
     assert "| all 2 tasks | ircr | 1.00 [1.00, 1.00] |" in table
     assert (tmp_path / "fig-stats.png").stat().st_size > 1000
-    from silcr.stats import figure_labels  # the figure names the group whose bar has no width
+    from silcr.stats import figure_labels  # the figure names a one-seed group (its bar has no width)
 
-    one, three = (5.0, np.array([5.0, 5.0])), (20.0, np.array([10.0, 30.0]))
-    assert figure_labels({"A": {"sac-dense": one, "silcr": three}, "B": {"sac-dense": one, "silcr": three}},
-                         ["sac-dense", "silcr"]) == {"sac-dense": "sac-dense (one seed)", "silcr": "silcr"}
+    seeds = {"A": {"sac-dense": 1, "silcr": 3, "sac": 3}, "B": {"sac-dense": 1, "silcr": 3, "sac": 3}}
+    assert figure_labels(seeds, ["sac", "sac-dense", "silcr"]) == {"sac": "sac", "sac-dense": "sac-dense (one seed)",
+                                                                    "silcr": "silcr"}
     smoothed = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(out), "--stats",
                                "rliable", "--final-evals", "2", "--bootstrap-reps", "200"],
                               capture_output=True, text=True, cwd=REPO, timeout=300)
