@@ -273,8 +273,8 @@ def _against(runs: list[RunCurve], setting: str, reps: int, seed: int, figure: P
     cells: dict[str, dict[str, dict[float, list[RunCurve]]]] = defaultdict(lambda: defaultdict(lambda: defaultdict(list)))
     for r, family, value in zip(runs, families(runs, setting), values):
         cells[r.env][family][value].append(r)
-    budgets = {r.config.get("total_steps") for r in runs}
-    ratio = PER_BUDGET.get(setting) if None not in budgets and min(values) > 0 else None
+    budgets = {r.config["total_steps"] for r in runs}  # always there: load_run fills defaults in
+    ratio = PER_BUDGET.get(setting) if min(values) > 0 else None
     budget = float(next(iter(budgets))) if ratio and len(budgets) == 1 else 0.0  # the figure's top axis
     lines = [f"{final_name('return', final_evals).capitalize()} against {setting}: interquartile mean over the seeds "
              f"at each value, 95% stratified bootstrap interval ({reps} replications, rliable).", "",
