@@ -11,6 +11,8 @@ import subprocess
 import sys
 import time
 import tomllib
+from contextlib import contextmanager
+from types import SimpleNamespace
 
 import pytest
 
@@ -128,6 +130,26 @@ def test_a_component_that_keeps_dying_is_reported_and_everything_stops(tmp_path)
         procs.stop_all()
 
 
+@contextmanager
+def _watched_run(tmp_path, run: str, *extra: str):
+    """A `silcr train` of two actors, with a client session reading its stats; everything is stopped
+    at the end. Yields `procs`, `train` (the launcher), `keys`, `stats` and `run_dir`; `procs` is
+    still there afterwards for its logs and orphans."""
+    procs = Processes(tmp_path)
+    port = free_port()
+    keys = P.Keys(run)
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", *extra)
+    try:
+        session = client_when_up(port)
+        try:
+            yield SimpleNamespace(procs=procs, train=train, keys=keys, stats=LatestJson(session, keys.stats_all),
+                                  run_dir=tmp_path / "runs" / run)
+        finally:
+            session.close()
+    finally:
+        procs.stop_all()
+
+
 def _kill_and_wait_for_restart(pids_file, name: str) -> None:
     old = json.loads(pids_file.read_text())[name]
     os.kill(old, signal.SIGKILL)
@@ -135,155 +157,107 @@ def _kill_and_wait_for_restart(pids_file, name: str) -> None:
 
 
 def test_a_killed_buffer_comes_back_from_its_checkpoint_and_the_learner_resumes(tmp_path):
-    procs = Processes(tmp_path)
-    port = free_port()
-    run = "e2e-buffer-kill"
-    keys = P.Keys(run)
-    run_dir = tmp_path / "runs" / run
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "5000",
-                   "--buffer-checkpoint-interval", "1")
-    try:
-        session = client_when_up(port)
-        stats = LatestJson(session, keys.stats_all)
+    with _watched_run(tmp_path, "e2e-buffer-kill", "--total-steps", "5000", "--buffer-checkpoint-interval", "1") as r:
+        keys, stats = r.keys, r.stats
         before = wait_for(lambda: (b := stats.get(keys.stats_buffer) or {}).get("checkpoint_transitions", 0) > 500
                           and (stats.get(keys.stats_learner) or {}).get("updates", 0) > 50 and b,
                           120, "training and a buffer checkpoint with data")
-        _kill_and_wait_for_restart(run_dir / "pids.json", "buffer")
+        _kill_and_wait_for_restart(r.run_dir / "pids.json", "buffer")
         restored = wait_for(lambda: (b := stats.get(keys.stats_buffer)) and "restored_transitions" in b and b, 60,
                             "the restarted buffer's stats")
         # It came back with what it had, not empty: at least the transitions of a checkpoint taken before the kill.
         assert restored["restored_transitions"] >= before["checkpoint_transitions"]
         assert restored["online_transitions"] >= before["checkpoint_transitions"]
         try:
-            assert train.wait(300) == 0, procs.log("train")
+            assert r.train.wait(300) == 0, r.procs.log("train")
         except subprocess.TimeoutExpired:
             pytest.fail("the run did not finish; latest stats: " + json.dumps(
                 {k: stats.get(k) for k in (keys.stats_buffer, keys.stats_learner, keys.stats_actor(0), keys.stats_actor(1))}))
         learner = stats.get(keys.stats_learner)
-        session.close()
-    finally:
-        procs.stop_all()
-    assert "buffer exited with code -9; restarting it (1/5)" in procs.log("train")
-    buffer_log = (run_dir / "logs" / "buffer.log").read_text()
+    assert "buffer exited with code -9; restarting it (1/5)" in r.procs.log("train")
+    buffer_log = (r.run_dir / "logs" / "buffer.log").read_text()
     assert "restored D_O" in buffer_log
     assert learner["finished"] is True
-    assert procs.orphans == []
+    assert r.procs.orphans == []
+
+
 def test_a_killed_router_is_restarted_and_nothing_is_lost(tmp_path):
     """SIGKILL of the Zenoh router used to end the run (exit 1): the launcher restarted every component but it."""
-    procs = Processes(tmp_path)
-    port = free_port()
-    run = "e2e-router-kill"
-    keys = P.Keys(run)
-    run_dir = tmp_path / "runs" / run
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "5000")
-    try:
-        session = client_when_up(port)
-        stats = LatestJson(session, keys.stats_all)
-        wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 50, 120, "training")
-        _kill_and_wait_for_restart(run_dir / "pids.json", "router")
-        assert train.wait(300) == 0, procs.log("train")
-        session.close()
-    finally:
-        procs.stop_all()
-    assert "router exited with code -9; restarting it (1/5)" in procs.log("train")
+    with _watched_run(tmp_path, "e2e-router-kill", "--total-steps", "5000") as r:
+        wait_for(lambda: (r.stats.get(r.keys.stats_learner) or {}).get("updates", 0) > 50, 120, "training")
+        _kill_and_wait_for_restart(r.run_dir / "pids.json", "router")
+        assert r.train.wait(300) == 0, r.procs.log("train")
+    assert "router exited with code -9; restarting it (1/5)" in r.procs.log("train")
     # Every episode an actor published reached the buffer: no gaps in any actor's sequence numbers,
     # none dropped at its inbox, and no buffer restart lost any.
+    buffer_log = (r.run_dir / "logs" / "buffer.log").read_text()
     stopping = re.search(r"buffer stopping \(.*\): (\d+) episodes, \d+ transitions received, (\d+) rejected, "
-                         r"(\d+) missing", (run_dir / "logs" / "buffer.log").read_text())
-    assert stopping and int(stopping.group(1)) > 0, (run_dir / "logs" / "buffer.log").read_text()[-2000:]
+                         r"(\d+) missing", buffer_log)
+    assert stopping and int(stopping.group(1)) > 0, buffer_log[-2000:]
     assert (int(stopping.group(2)), int(stopping.group(3))) == (0, 0)
-    assert "restarting" not in procs.log("train").replace("router exited with code -9; restarting it (1/5)", "")
-    assert procs.orphans == []
+    assert "restarting" not in r.procs.log("train").replace("router exited with code -9; restarting it (1/5)", "")
+    assert r.procs.orphans == []
 
 
 def test_a_killed_learner_resumes_from_its_checkpoint_with_its_counters(tmp_path):
-    procs = Processes(tmp_path)
-    port = free_port()
-    run = "e2e-learner-kill"
-    keys = P.Keys(run)
-    run_dir = tmp_path / "runs" / run
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "5000",
-                   "--checkpoint-interval", "100")
-    try:
-        session = client_when_up(port)
-        stats = LatestJson(session, keys.stats_all)
-        ckpt_path = run_dir / "checkpoints" / "learner.pt"
-        wait_for(lambda: ckpt_path.exists() and (stats.get(keys.stats_learner) or {}).get("updates", 0) > 250, 180,
+    with _watched_run(tmp_path, "e2e-learner-kill", "--total-steps", "5000", "--checkpoint-interval", "100") as r:
+        ckpt_path = r.run_dir / "checkpoints" / "learner.pt"
+        wait_for(lambda: ckpt_path.exists() and (r.stats.get(r.keys.stats_learner) or {}).get("updates", 0) > 250, 180,
                  "two learner checkpoints")
         saved = load_checkpoint(ckpt_path)
-        _kill_and_wait_for_restart(run_dir / "pids.json", "learner")
-        assert train.wait(300) == 0, procs.log("train")
-        session.close()
-    finally:
-        procs.stop_all()
-    log = (run_dir / "logs" / "learner.log").read_text()
+        _kill_and_wait_for_restart(r.run_dir / "pids.json", "learner")
+        assert r.train.wait(300) == 0, r.procs.log("train")
+    log = (r.run_dir / "logs" / "learner.log").read_text()
     u = saved["counters"]["updates"]
     resumed = re.search(r"resumed from .*: (\d+) updates, policy version (\d+)", log)
     assert resumed, log[-2000:]
     assert int(resumed.group(1)) >= u and int(resumed.group(2)) >= saved["counters"]["policy_version"]
-    rows = list(csv.DictReader(open(run_dir / "progress.csv")))
+    rows = list(csv.DictReader(open(r.run_dir / "progress.csv")))
     for col in ("updates", "policy_version", "env_steps"):
-        values = [int(r[col]) for r in rows]
+        values = [int(row[col]) for row in rows]
         assert values == sorted(values), f"{col} went backwards after the resume: {values}"
-    final = load_checkpoint(run_dir / "checkpoints" / "learner.pt")
+    final = load_checkpoint(r.run_dir / "checkpoints" / "learner.pt")
     assert final["counters"]["updates"] > u
-    assert procs.orphans == []
+    assert r.procs.orphans == []
+
+
 def test_a_learner_killed_between_checkpoints_is_served_again_the_updates_it_lost(tmp_path):
     """SIGKILL at 2,600+ updates, with the learner's checkpoint at 2,000: the restarted learner has lost 600 or
     more updates the buffer counted as served. The buffer takes the restarted learner's count from its first
     request, so at the end its count of updates served is the learner's count of updates made. Before, the
     limiter counted the lost updates as made, and the actors collected about that many steps past the budget
     while the learner made them up."""
-    procs = Processes(tmp_path)
-    port = free_port()
     run = "e2e-learner-lost-updates"
-    keys = P.Keys(run)
-    run_dir = tmp_path / "runs" / run
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "5000",
-                   "--checkpoint-interval", "2000")
-    try:
-        session = client_when_up(port)
-        stats = LatestJson(session, keys.stats_all)
-        wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) >= 2600, 240, "2,600 updates")
-        _kill_and_wait_for_restart(run_dir / "pids.json", "learner")
-        assert train.wait(300) == 0, procs.log("train")
-        session.close()
-    finally:
-        procs.stop_all()
+    with _watched_run(tmp_path, run, "--total-steps", "5000", "--checkpoint-interval", "2000") as r:
+        wait_for(lambda: (r.stats.get(r.keys.stats_learner) or {}).get("updates", 0) >= 2600, 240, "2,600 updates")
+        _kill_and_wait_for_restart(r.run_dir / "pids.json", "learner")
+        assert r.train.wait(300) == 0, r.procs.log("train")
+    buffer_log = (r.run_dir / "logs" / "buffer.log").read_text()
     lost = re.search(r"learner \d+ has made (\d+) updates, the limiter counted (\d+) served; it takes the learner's count",
-                     (run_dir / "logs" / "buffer.log").read_text())
-    assert lost and int(lost.group(2)) - int(lost.group(1)) >= 600, (run_dir / "logs" / "buffer.log").read_text()[-2000:]
-    made = load_checkpoint(run_dir / "checkpoints" / "learner.pt")["counters"]["updates"]
+                     buffer_log)
+    assert lost and int(lost.group(2)) - int(lost.group(1)) >= 600, buffer_log[-2000:]
+    made = load_checkpoint(r.run_dir / "checkpoints" / "learner.pt")["counters"]["updates"]
     assert made >= 4500
     buffer = ReplayState(Config(run=run, env="InvertedPendulum-v5"), EnvSpec.of("InvertedPendulum-v5"))
-    snapshot.restore(run_dir / "checkpoints" / "buffer.ckpt", buffer)  # written at the buffer's exit
+    snapshot.restore(r.run_dir / "checkpoints" / "buffer.ckpt", buffer)  # written at the buffer's exit
     # What separates the two counts is only what was in flight when the run ended (a few batches).
     assert 0 <= buffer.limiter.samples - made <= 64, (buffer.limiter.samples, made)
-    assert procs.orphans == []
+    assert r.procs.orphans == []
 
 
 def test_a_killed_actor_is_restarted_and_the_run_finishes(tmp_path):
-    procs = Processes(tmp_path)
-    port = free_port()
-    run = "e2e-restart"
-    keys = P.Keys(run)
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "4000")
-    try:
-        session = client_when_up(port)
-        stats = LatestJson(session, keys.stats_all)
-        wait_for(lambda: (stats.get(keys.stats_learner) or {}).get("updates", 0) > 20, 120, "training to start")
-        _kill_and_wait_for_restart(tmp_path / "runs" / run / "pids.json", "actor-0")
-        assert train.wait(300) == 0, procs.log("train")
-        buf = stats.get(keys.stats_buffer)
-        assert buf["episodes_rejected"] == 0  # nothing stored twice, nothing malformed
-        session.close()
-    finally:
-        procs.stop_all()
-    assert "actor-0 exited with code -9; restarting it (1/5)" in procs.log("train")
+    with _watched_run(tmp_path, "e2e-restart", "--total-steps", "4000") as r:
+        wait_for(lambda: (r.stats.get(r.keys.stats_learner) or {}).get("updates", 0) > 20, 120, "training to start")
+        _kill_and_wait_for_restart(r.run_dir / "pids.json", "actor-0")
+        assert r.train.wait(300) == 0, r.procs.log("train")
+        assert r.stats.get(r.keys.stats_buffer)["episodes_rejected"] == 0  # nothing stored twice, nothing malformed
+    assert "actor-0 exited with code -9; restarting it (1/5)" in r.procs.log("train")
     # the restarted actor explores afresh: a new seed, not its predecessor's
-    seeds = re.findall(r"actor 0 on \S+ with \d+ env\(s\), seed (\d+)", (tmp_path / "runs" / run / "logs" / "actor-0.log").read_text())
+    seeds = re.findall(r"actor 0 on \S+ with \d+ env\(s\), seed (\d+)", (r.run_dir / "logs" / "actor-0.log").read_text())
     assert len(seeds) == 2 and seeds[0] != seeds[1], seeds
-    assert procs.orphans == []
+    assert r.procs.orphans == []
+
+
 def test_router_port_in_use_is_a_clear_error(tmp_path):
     import socket
 
