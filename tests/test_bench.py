@@ -91,23 +91,30 @@ def test_recorded_matmuls_are_the_counted_flops():
 
 def test_a_process_cpu_time_is_read_finer_than_a_clock_tick():
     """The scale bench's CPU figures resolve less than /proc's 10 ms tick: a router relaying two
-    actors uses about 15 ms in a 5 s window, which ticks could read as 0 (a CI run did)."""
-    import os
+    actors uses about 15 ms in a 5 s window, which ticks could read as 0 (a CI run did). Another
+    process burns 3 ms of CPU on cue; the bench's reading of it agrees with its own clock."""
     import subprocess
     import sys
-    import time
 
     from silcr.bench.scale import _cpu_seconds
 
-    before = _cpu_seconds(os.getpid())
-    start = time.process_time()
-    while time.process_time() - start < 0.003:  # 3 ms of this process's CPU, under one tick
-        pass
-    used = _cpu_seconds(os.getpid()) - before
-    assert 0.002 < used < 0.008, used
-    gone = subprocess.Popen([sys.executable, "-c", "pass"])
-    gone.wait()
-    assert _cpu_seconds(gone.pid) is None
+    burn = ("import sys, time\nprint('ready', flush=True)\nsys.stdin.readline()\nt = time.process_time()\n"
+            "while time.process_time() - t < 0.003:\n    pass\nprint(time.process_time() - t, flush=True)\n"
+            "sys.stdin.readline()\n")
+    child = subprocess.Popen([sys.executable, "-c", burn], stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
+    try:
+        assert child.stdout.readline().strip() == "ready"
+        before = _cpu_seconds(child.pid)
+        child.stdin.write("go\n")
+        child.stdin.flush()
+        burnt = float(child.stdout.readline())
+        seen = _cpu_seconds(child.pid) - before
+        child.stdin.write("end\n")
+        child.stdin.flush()
+    finally:
+        child.wait(30)
+    assert burnt >= 0.003 and abs(seen - burnt) < 0.002, (seen, burnt)
+    assert _cpu_seconds(child.pid) is None  # gone
 
 
 def test_the_scale_bench_measures_a_real_run_and_loses_nothing(tmp_path):
