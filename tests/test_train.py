@@ -42,15 +42,30 @@ def _train(procs: Processes, run: str, port: int, runs_dir, *extra: str, new_ses
     )
 
 
-def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
+@contextmanager
+def _watched_run(tmp_path, run: str, *extra: str):
+    """A `silcr train` of two actors, with a client session reading its stats; everything is stopped
+    at the end. Yields `procs`, `train` (the launcher), `port`, `keys`, `stats` and `run_dir`; `procs` is
+    still there afterwards for its logs and orphans."""
     procs = Processes(tmp_path)
     port = free_port()
-    run = "e2e-train"
     keys = P.Keys(run)
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "3000", "--eval-interval", "1000")
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", *extra)
     try:
         session = client_when_up(port)
-        stats = LatestJson(session, keys.stats_all)
+        try:
+            yield SimpleNamespace(procs=procs, train=train, port=port, keys=keys,
+                                  stats=LatestJson(session, keys.stats_all), run_dir=tmp_path / "runs" / run)
+        finally:
+            session.close()
+    finally:
+        procs.stop_all()
+
+
+def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
+    run = "e2e-train"
+    with _watched_run(tmp_path, run, "--total-steps", "3000", "--eval-interval", "1000") as r:
+        keys, stats = r.keys, r.stats
         buf = wait_for(lambda: stats.get(keys.stats_buffer), 60, "buffer stats from an outside client")
         assert REQUIRED_BUFFER_STATS <= buf.keys()
         learner = wait_for(lambda: stats.get(keys.stats_learner), 60, "learner stats")
@@ -61,26 +76,22 @@ def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
         # RUST_LOG=info: Zenoh logs its session's start, on file descriptor 1; the JSON must stay clean
         # (an error line Zenoh printed under load once broke it).
         mon = subprocess.run(
-            [sys.executable, "-m", "silcr.cli", "monitor", "--run", run, "--connect", f"tcp/127.0.0.1:{port}",
+            [sys.executable, "-m", "silcr.cli", "monitor", "--run", run, "--connect", f"tcp/127.0.0.1:{r.port}",
              "--once", "--json", "--timeout", "20"],
             capture_output=True, text=True, timeout=60, cwd=REPO, env={**os.environ, "RUST_LOG": "info"},
         )
         assert mon.returncode == 0, mon.stdout + mon.stderr
         snap = json.loads(mon.stdout)
         assert snap["buffer"]["online_capacity"] == 1_000_000 and "updates" in snap["learner"]
-        session.close()
-        assert train.wait(300) == 0, procs.log("train")
-    finally:
-        procs.stop_all()
-
-    run_dir = tmp_path / "runs" / run
+        assert r.train.wait(300) == 0, r.procs.log("train")
+    procs, run_dir = r.procs, r.run_dir
     saved = tomllib.loads((run_dir / "config.toml").read_text())
     assert saved["actors"] == 2 and saved["hidden"] == [32, 32] and saved["run"] == run
     rows = list(csv.DictReader(open(run_dir / "progress.csv")))
     assert {"time", "env_steps", "updates", "policy_version", "eval_return"} <= rows[0].keys()
     assert len(rows) >= 3
     assert int(rows[-1]["env_steps"]) >= 3000 and int(rows[-1]["updates"]) >= 2500 - 500
-    versions = [int(r["policy_version"]) for r in rows]
+    versions = [int(row["policy_version"]) for row in rows]
     assert versions == sorted(versions) and versions[-1] > 0
     ckpt = load_checkpoint(run_dir / "checkpoints" / "learner.pt")
     assert ckpt["counters"]["updates"] == int(rows[-1]["updates"])
@@ -126,26 +137,6 @@ def test_a_component_that_keeps_dying_is_reported_and_everything_stops(tmp_path)
         out = procs.log("train")
         assert "buffer exited with code -9" in out
         wait_for(lambda: tagged_pids(procs.tag) == [], 30, "every process to exit")
-    finally:
-        procs.stop_all()
-
-
-@contextmanager
-def _watched_run(tmp_path, run: str, *extra: str):
-    """A `silcr train` of two actors, with a client session reading its stats; everything is stopped
-    at the end. Yields `procs`, `train` (the launcher), `keys`, `stats` and `run_dir`; `procs` is
-    still there afterwards for its logs and orphans."""
-    procs = Processes(tmp_path)
-    port = free_port()
-    keys = P.Keys(run)
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", *extra)
-    try:
-        session = client_when_up(port)
-        try:
-            yield SimpleNamespace(procs=procs, train=train, keys=keys, stats=LatestJson(session, keys.stats_all),
-                                  run_dir=tmp_path / "runs" / run)
-        finally:
-            session.close()
     finally:
         procs.stop_all()
 
