@@ -25,6 +25,8 @@ EXPERT_SOURCES = ("own", "demos", "none")
 #:   credit    IRCR's guidance reward: the row's episode's return per step, min-max
 #:             normalised over the episodes now in D_O and D_E
 LABELS = ("constant", "env", "credit")
+#: The largest label a row can get: D_E's constant 1, the top of IRCR's min-max normalised credit.
+LABEL_MAX = 1.0
 
 
 @dataclass(frozen=True)
@@ -63,6 +65,12 @@ class Algorithm:
     @property
     def keeps_expert(self) -> bool:
         return self.expert != "none"
+
+    @property
+    def labels_bounded(self) -> bool:
+        """Every row's reward is a label in [0, LABEL_MAX] (constant or credit), so the soft-Q bound is known and
+        `--q-target-clip bound` applies; an env's reward has no known range."""
+        return self.labels in ("constant", "credit")
 
     @property
     def uses_env_reward(self) -> bool:

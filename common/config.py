@@ -26,6 +26,8 @@ _ENV_REWARD = [a.name for a in algorithms.ALGORITHMS.values() if a.uses_env_rewa
 GASIL_REWARD_FORMS = ("logit", "positive", "negative")  # r_D from the discriminator (learner.gasil)
 EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.expert_heap)
 TANH_LOG_PROB_FORMS = ("exact", "official")  # log(1 - tanh^2) in the policy's log-probability (learner.sac)
+CRITIC_NORMS = ("none", "layer")  # a normalisation after each hidden layer of the critics (learner.sac)
+Q_TARGET_CLIPS = ("none", "bound")  # whether the TD target is clipped at the soft-Q bound (learner.sac.clip_target)
 DEVICES = ("auto", "cpu", "cuda")
 ZENOH_MODES = ("peer", "client")
 # Above this many actors, `silcr train` makes them Zenoh clients of its router: gossip links
@@ -103,6 +105,14 @@ class Config:
                                     "end at success, such as MiniGrid's goal (docs/algorithm.md)")
     target_entropy_scale: float = _opt(0.89, {"train", "learner"}, "discrete actions: target entropy as a fraction of "
                                        "log |A| (CleanRL's sac_atari.py: 0.89; Christodoulou 2019: 0.98)")
+    critic_norm: str = _opt("none", {"train", "learner"}, "layer: a LayerNorm after each hidden layer of both "
+                            "critics (RLPD, Ball et al. 2023), which keeps Q from extrapolating past the data; "
+                            "none: plain layers as in the paper (docs/algorithm.md, \"Critics that stay bounded\")",
+                            choices=CRITIC_NORMS)
+    q_target_clip: str = _opt("none", {"train", "learner"}, "bound: clip the TD target at the soft-Q bound the labels "
+                              "allow, (1 + gamma alpha H_max) / (1 - gamma), for the labelled algorithms "
+                              f"({', '.join(a.name for a in algorithms.ALGORITHMS.values() if a.labels_bounded)}); "
+                              "none: no clip", choices=Q_TARGET_CLIPS)
     tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
     total_steps: int = _opt(2_000_000, {"train", "learner"}, "environment-step budget of the run")
@@ -368,6 +378,12 @@ def validate(cfg: Config, role: str) -> None:
         raise ConfigError("--absorbing-terminal", f"--algo {cfg.algo} learns from the env's reward, which an absorbing "
                                                   f"state would pay forever; it is for the labelled algorithms "
                                                   f"({', '.join(a.name for a in algorithms.ALGORITHMS.values() if not a.uses_env_reward)})")
+    if cfg.q_target_clip == "bound" and not algo.labels_bounded:
+        raise ConfigError("--q-target-clip", f"--algo {cfg.algo} learns from the env's reward, whose largest value "
+                                             f"is not known, so no soft-Q bound can be computed; it is for the "
+                                             f"labelled algorithms ({', '.join(a.name for a in algorithms.ALGORITHMS.values() if a.labels_bounded)})")
+    if cfg.q_target_clip == "bound" and cfg.gamma >= 1:
+        raise ConfigError("--q-target-clip", "needs --gamma below 1 (the soft-Q bound is r_max / (1 - gamma))")
     if cfg.absorbing_terminal and cfg.gamma >= 1:
         raise ConfigError("--absorbing-terminal", "needs --gamma below 1 (an absorbing state's value is r / (1 - gamma))")
     if cfg.env in EPISODIC_IDS and algo.uses_env_reward and cfg.reward == "dense":

@@ -231,6 +231,7 @@ class Bookkeeping:
             **{k: self.buffer_meta.get(k) for k in EXPERT_COLUMNS},
             "checkpoints_failed": self.checkpoints_failed,
             "eval_success": "" if success is None else success,
+            "q_target_clipped": losses.get("q_target_clipped", float("nan")),
         })
         log.info("eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f%s, %.1fs)",
                  self.env_steps, self.updates, mean, std, length,

@@ -32,6 +32,7 @@ PROGRESS_COLUMNS = [
     *GASIL_COLUMNS,
     "checkpoints_failed",  # learner checkpoints that could not be written (silcr 0.4)
     "eval_success",  # share of evaluation episodes that reached the goal; empty for tasks without one (silcr 0.5)
+    "q_target_clipped",  # share of the last update's TD targets cut at the soft-Q bound (--q-target-clip bound)
 ]
 
 

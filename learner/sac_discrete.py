@@ -17,6 +17,10 @@ policy's entropy. silcr's default fraction is 0.89, as in CleanRL's `sac_atari.p
 Christodoulou used 0.98, which keeps the policy near uniform for long (a sparse-reward
 agent that must commit to a path never does).
 
+The two options that keep critics bounded act as in `sac.py`: `--critic-norm layer` puts a
+LayerNorm after each hidden layer of both critics, and `--q-target-clip bound` clips (5)'s target
+at the soft-Q bound, with log |A| as the entropy's largest value.
+
 Everything else matches `sac.py`: mean-squared critic loss, the gradient-norm clip per
 critic and for the actor, the actor step against the just-updated critics, the alpha
 step with that step's probabilities, Polyak averaging after every update, and the
@@ -32,7 +36,9 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from .sac import QBoundWatch, SacState, _adam, absorbing, mlp
+from silcr.common.config import CRITIC_NORMS
+
+from .sac import QBoundWatch, SacState, _adam, absorbing, clip_target, mlp
 
 #: silcr's default target entropy, as a fraction of log |A| (CleanRL's sac_atari.py; Christodoulou: 0.98;
 #: `--target-entropy-scale`)
@@ -49,6 +55,8 @@ class DiscreteSacHyper:
     target_entropy_scale: float = TARGET_ENTROPY_SCALE
     time_limit_terminal: bool = False
     absorbing_terminal: bool = False  # a terminal row's label is paid forever after (`sac.absorbing`)
+    critic_norm: str = "none"  # or "layer": LayerNorm after each hidden layer of the critics
+    target_reward_max: float | None = None  # --q-target-clip bound: the labels' largest value (`sac.clip_target`)
 
 
 class CategoricalActor(nn.Module):
@@ -77,12 +85,15 @@ class CategoricalActor(nn.Module):
 
 
 class TwinQ(nn.Module):
-    """Q_1(s, .) and Q_2(s, .): one output per action."""
+    """Q_1(s, .) and Q_2(s, .): one output per action (`norm="layer"`: a LayerNorm after each hidden layer)."""
 
-    def __init__(self, obs_dim: int, n_actions: int, hidden: list[int]) -> None:
+    def __init__(self, obs_dim: int, n_actions: int, hidden: list[int], norm: str = "none") -> None:
         super().__init__()
-        self.q1 = nn.Sequential(mlp([obs_dim, *hidden]), nn.Linear(hidden[-1], n_actions))
-        self.q2 = nn.Sequential(mlp([obs_dim, *hidden]), nn.Linear(hidden[-1], n_actions))
+        if norm not in CRITIC_NORMS:
+            raise ValueError(f"critic norm must be one of {CRITIC_NORMS}, got {norm!r}")
+        ln = norm == "layer"
+        self.q1 = nn.Sequential(mlp([obs_dim, *hidden], layer_norm=ln), nn.Linear(hidden[-1], n_actions))
+        self.q2 = nn.Sequential(mlp([obs_dim, *hidden], layer_norm=ln), nn.Linear(hidden[-1], n_actions))
 
     def forward(self, obs: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         return self.q1(obs), self.q2(obs)
@@ -130,8 +141,8 @@ class DiscreteSac(SacState):
         self.hp, self.device = hp, device
         self.obs_dim, self.n_actions, self.hidden = obs_dim, n_actions, list(hidden)
         self.actor = CategoricalActor(obs_dim, n_actions, hidden).to(device)
-        self.critic = TwinQ(obs_dim, n_actions, hidden).to(device)
-        self.critic_target = TwinQ(obs_dim, n_actions, hidden).to(device)
+        self.critic = TwinQ(obs_dim, n_actions, hidden, hp.critic_norm).to(device)
+        self.critic_target = TwinQ(obs_dim, n_actions, hidden, hp.critic_norm).to(device)
         self.critic_target.load_state_dict(self.critic.state_dict())
         for p in self.critic_target.parameters():
             p.requires_grad_(False)
@@ -161,6 +172,8 @@ class DiscreteSac(SacState):
             if hp.absorbing_terminal:
                 entropy = -(next_probs * next_log_probs).sum(-1).mean()
                 y = absorbing(y, rewards, done, alpha, entropy, hp.gamma)
+            if hp.target_reward_max is not None:  # --q-target-clip bound: no target above what the labels allow
+                y, clipped = clip_target(y, hp.target_reward_max, alpha, self.watch.entropy_max, hp.gamma)
 
         # (4) critic loss for the actions taken
         q1, q2 = self.critic(obs)
@@ -196,7 +209,7 @@ class DiscreteSac(SacState):
             q_max, q_bound = self.watch.see(torch.maximum(q1_a, taken(q2.detach(), actions)).max(), rewards, alpha)
 
         entropy = -(probs * log_probs).sum(-1).detach().mean()
-        return {
+        stats = {
             "critic_loss": (q1_loss + q2_loss).detach() / 2,
             "actor_loss": pi_loss.detach(),
             "alpha": alpha,
@@ -208,3 +221,6 @@ class DiscreteSac(SacState):
             "entropy": entropy,
             "q_bound": q_bound,
         }
+        if hp.target_reward_max is not None:
+            stats["q_target_clipped"] = clipped
+        return stats

@@ -21,7 +21,7 @@ import torch
 
 from silcr import openmp_wait
 from silcr.common import protocol as P
-from silcr.common.algorithms import algorithm
+from silcr.common.algorithms import LABEL_MAX, algorithm
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 
@@ -93,12 +93,14 @@ class Update:
     def _new_sac(self) -> SacState:
         """The SAC update for the env's action kind, with this run's hyperparameters."""
         cfg, spec = self.cfg, self.spec
+        # --q-target-clip bound: the labels' largest value (config validation refuses it for env rewards)
+        target_reward_max = LABEL_MAX if cfg.q_target_clip == "bound" else None
         if spec.discrete:
             dhp = DiscreteSacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, cfg.target_entropy_scale,
-                                   cfg.time_limit_terminal, cfg.absorbing_terminal)
+                                   cfg.time_limit_terminal, cfg.absorbing_terminal, cfg.critic_norm, target_reward_max)
             return DiscreteSac(spec.obs_dim, spec.n_actions, cfg.hidden, dhp, self.device)
         hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
-                      cfg.tanh_log_prob, cfg.absorbing_terminal)
+                      cfg.tanh_log_prob, cfg.absorbing_terminal, cfg.critic_norm, target_reward_max)
         return Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
 
     def _set_threads(self, spec: EnvSpec) -> int:
