@@ -108,11 +108,11 @@ class Config:
     critic_norm: str = _opt("none", {"train", "learner"}, "layer: a LayerNorm after each hidden layer of both "
                             "critics (RLPD, Ball et al. 2023), which keeps Q from extrapolating past the data; "
                             "none: plain layers as in the paper (docs/algorithm.md, \"Critics that stay bounded\")",
-                            choices=CRITIC_NORMS)
+                            choices=CRITIC_NORMS, absent="none")
     q_target_clip: str = _opt("none", {"train", "learner"}, "bound: clip the TD target at the soft-Q bound the labels "
                               "allow, (1 + gamma alpha H_max) / (1 - gamma), for the labelled algorithms "
                               f"({', '.join(a.name for a in algorithms.ALGORITHMS.values() if a.labels_bounded)}); "
-                              "none: no clip", choices=Q_TARGET_CLIPS)
+                              "none: no clip", choices=Q_TARGET_CLIPS, absent="none")
     tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
     total_steps: int = _opt(2_000_000, {"train", "learner"}, "environment-step budget of the run")
@@ -187,6 +187,14 @@ FIELDS = {f.name: f for f in dataclasses.fields(Config)}
 def default_of(name: str) -> Any:
     f = FIELDS[name]
     return f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
+
+
+def value_when_absent(name: str) -> Any:
+    """What a run's config.toml without `name` ran with: an option is added keeping the behaviour it
+    replaces, so that is its default when added. An option whose default changed later says so
+    (`absent=`), so records written before it existed keep reading as what they ran."""
+    meta = FIELDS[name].metadata
+    return meta["absent"] if "absent" in meta else default_of(name)
 
 
 def option_name(name: str) -> str:

@@ -29,8 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr.plot import (NOT_A_SETTING, RunCurve, _applies, base_label, differing_settings, final_name, final_value,
-                        group, group_colours, label_key, panels)
+from silcr.figures import group_colours, panels
+from silcr.runs import (NOT_A_SETTING, RunCurve, applies, base_label, differing_settings, final_name, final_value,
+                        group, label_key)
 
 #: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
 REPS = 2000
@@ -255,7 +256,7 @@ def families(runs: list[RunCurve], setting: str) -> list[str]:
     # another experiment, not another seed. The algorithm and its reward are in base_label already.
     label_settings = {"expert_capacity", "demos", "total_steps"}
     differing = differing_settings(runs, (NOT_A_SETTING - label_settings) | {setting})
-    return [" ".join([base_label(r.config)] + [f"{k}={r.config.get(k)}" for k in differing if _applies(k, r)])
+    return [" ".join([base_label(r.config)] + [f"{k}={r.config.get(k)}" for k in differing if applies(k, r)])
             for r in runs]
 
 

@@ -23,7 +23,7 @@ import pytest
 from tests.helpers import REPO, free_port
 
 COMPONENTS = ("silcr.actor", "silcr.learner", "silcr.buffer_service", "silcr.deploy", "silcr.bench", "silcr.cli",
-              "silcr.plot", "silcr.policy_commands")
+              "silcr.plot", "silcr.runs", "silcr.figures", "silcr.stats", "silcr.policy_commands")
 
 
 def _imports(path: Path) -> set[str]:

@@ -10,7 +10,8 @@ import pytest
 import torch
 
 from silcr.common.config import Config
-from silcr.plot import label_by_variant, load_run, plot, summary_markdown
+from silcr.plot import plot, summary_markdown
+from silcr.runs import label_by_variant, load_run
 from silcr.learner.checkpoint import save_checkpoint
 from silcr.learner.sac import Sac, SacHyper
 from tests.helpers import REPO
@@ -54,7 +55,7 @@ def test_plot_draws_one_panel_per_task_and_one_curve_per_algorithm(tmp_path):
 def test_a_group_keeps_its_colour_in_every_panel_and_steps_read_in_thousands(tmp_path):
     """ircr runs on Hopper only: without one colour per group, Walker2d's silcr would take
     the colour ircr has on Hopper."""
-    from silcr.plot import _steps_tick
+    from silcr.figures import steps_tick as _steps_tick
 
     runs = [load_run(_fake_run(tmp_path, env, algo, 0, [0, 100_000, 200_000], [0, 1, 2]))
             for env, algo in (("Hopper-v5", "ircr"), ("Hopper-v5", "silcr"), ("Walker2d-v5", "silcr"))]
@@ -143,7 +144,7 @@ def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
 def test_gasil_settings_label_only_gasil_runs(tmp_path):
     """A run of another algorithm is not labelled with GASIL's settings, and a run from before an option
     existed reads as its default (here tanh_log_prob and GASIL's options, added later)."""
-    from silcr.plot import distinguish
+    from silcr.runs import distinguish
 
     dirs = []
     for i, (algo, alpha) in enumerate([("gasil", 0.1), ("gasil", 0.3), ("silcr", 0.1), ("sac", 0.1)]):
@@ -163,7 +164,7 @@ def test_gasil_settings_label_only_gasil_runs(tmp_path):
 
 def test_plot_keeps_runs_of_different_settings_apart_and_plots_other_columns(tmp_path):
     from silcr.common.config import Config
-    from silcr.plot import distinguish
+    from silcr.runs import distinguish
 
     dirs = []
     for i, (tau, admission, seed) in enumerate([(0.05, "return", 0), (0.05, "return", 1), (0.005, "return", 0),
@@ -238,7 +239,7 @@ def test_the_interval_figure_colours_each_group_as_the_curves_do(tmp_path, monke
     pytest.importorskip("rliable")
     from rliable import plot_utils
 
-    from silcr.plot import group_colours
+    from silcr.figures import group_colours
     from silcr.stats import _interval_figure
 
     seen, drawn = {}, []
@@ -328,7 +329,7 @@ def test_the_closing_line_gives_the_final_evaluation_with_digits_that_matter(tmp
 
 def test_sweep_cells_are_labelled_by_their_variants_unless_one_name_covers_two_settings(tmp_path):
     from silcr.common.config import Config
-    from silcr.plot import distinguish, label_by_variant
+    from silcr.runs import distinguish, label_by_variant
 
     def cell(root, variant, seed, **settings):
         d = root / f"{variant}_MiniGrid-Empty-8x8-v0_s{seed}"
@@ -420,3 +421,54 @@ def test_an_interval_does_not_depend_on_the_other_runs_plotted_with_it(tmp_path)
     assert hopper_line(before + hopper) == alone
     np.random.seed(123)  # nor on the caller's use of the global generator
     assert hopper_line(hopper) == alone
+
+
+def test_plot_pools_one_configurations_cells_from_two_studies_and_refuses_when_settings_differ(tmp_path):
+    """Ten seeds from two studies (issue 37): cells of one variant and task in two runs directories are
+    seeds of one group when every setting matches (where and how they ran aside), and refused with one
+    line naming the settings otherwise, or when a seed appears twice."""
+    def cell(study, variant, seed, final, **settings):
+        d = tmp_path / study / f"{variant}_Hopper-v5_s{seed}"
+        d.mkdir(parents=True)
+        Config(run=d.name, runs_dir=f"runs/{study}", env="Hopper-v5", seed=seed, torch_threads=1 + seed % 2,
+               zenoh_listen=f"tcp/127.0.0.1:{17500 + seed}", **settings).save(d / "config.toml")
+        (d / "progress.csv").write_text(f"env_steps,eval_return\n0,0\n1000,{final}\n")
+        return d
+
+    def plot_cli(*dirs):
+        return subprocess.run([sys.executable, "-m", "silcr.cli", "plot", *map(str, dirs), "-o", str(tmp_path / "f.png")],
+                              capture_output=True, text=True, cwd=REPO, timeout=120)
+
+    first = [cell("five", "silcr", s, 10.0 * s) for s in range(3)]
+    later = [cell("ten", "silcr", s, 10.0 * s) for s in range(3, 6)]
+    r = plot_cli(*first, *later)
+    assert r.returncode == 0, r.stderr
+    assert "| Hopper-v5 | silcr | 6 | 1,000 | 25.0 ± 17.1 |" in r.stdout  # one group of six seeds: 0, 10, ... 50
+    # one setting differs in the later study: refused, naming it, before any figure is written
+    (tmp_path / "f.png").unlink()
+    other = [cell("tau", "silcr", s, 1.0, tau=0.001) for s in (6, 7)]
+    r = plot_cli(*first, *other)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and len(r.stderr.strip().splitlines()) == 1
+    assert "tau: 0.001 vs 0.005" in r.stderr and "not pooled" in r.stderr
+    assert not (tmp_path / "f.png").exists()
+    # the same seed in both studies is not two seeds
+    again = cell("again", "silcr", 0, 5.0)
+    r = plot_cli(*first, again)
+    assert r.returncode == 2 and "seed 0 appears in more than one" in r.stderr
+
+
+def test_a_record_without_a_newer_option_reads_as_what_it_ran(tmp_path, monkeypatch):
+    """A config.toml written before --critic-norm existed ran plain critics, whatever today's default is."""
+    import copy
+
+    from silcr.common import config as C
+
+    d = _fake_run(tmp_path, "Hopper-v5", "silcr", 0, [0, 1000], [1, 2])
+    text = (d / "config.toml").read_text()
+    (d / "config.toml").write_text("\n".join(line for line in text.splitlines() if not line.startswith("critic_norm")))
+    # as if the default had since become LayerNorm critics
+    changed = copy.copy(C.FIELDS["critic_norm"])
+    changed.default = "layer"
+    monkeypatch.setitem(C.FIELDS, "critic_norm", changed)
+    assert C.default_of("critic_norm") == "layer"
+    assert load_run(d).config["critic_norm"] == "none"
