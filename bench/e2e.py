@@ -10,7 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
-from silcr.cli import command
+from silcr.common.commands import command
 from silcr.common import protocol as P
 
 from silcr.deploy.monitor import StatsSnapshot

@@ -39,7 +39,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from silcr.cli import command
+from silcr.common.commands import command
 from silcr.common.algorithms import ALGORITHMS
 
 from .procs import free_port

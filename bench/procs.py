@@ -12,7 +12,7 @@ from typing import Any, Callable
 
 import zenoh
 
-from silcr.cli import command
+from silcr.common.commands import command
 from silcr.common.zenoh_session import open_session, session_config
 
 

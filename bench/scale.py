@@ -41,7 +41,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from silcr.cli import command
+from silcr.common.commands import command
 from silcr.common import protocol as P
 from silcr.common.zenoh_session import open_session, session_config
 from silcr.deploy.monitor import StatsSnapshot

@@ -79,8 +79,8 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
         server.close()
     checkpoints.final(replay)
     log.info("buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d missing, %d batches served",
-             stop.reason, replay.episodes_received, replay.transitions_received, sum(replay.rejections.values()),
-             replay.episodes_missing, replay.batches_served)
+             stop.reason, replay.intake.episodes_received, replay.transitions_received, sum(replay.intake.rejections.values()),
+             replay.intake.episodes_missing, replay.sampler.batches_served)
     return 0
 
 
@@ -93,7 +93,7 @@ def _serve(replay: ReplayState, query: SampleQuery, learners: Presence) -> None:
     except P.ProtocolError as e:
         if _REFUSAL_LOGS.setdefault(e.reason, Every(10.0)).due():
             log.warning("rejected sample request (%s): %s (%d refused so far)", e.reason, e,
-                        replay.request_rejections[e.reason])
+                        replay.sampler.request_rejections[e.reason])
         query.refuse(f"{e.reason}: {e}")
         return
     query.answer(reply)

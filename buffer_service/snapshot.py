@@ -1,23 +1,24 @@
 """Buffer checkpoints: the file format, and the thread that writes them.
 
-What goes in is not decided here: `ReplayState.state()` gathers it, each part
-(D_O, D_E, the rate limiter, the counters) providing its own, and
-`ReplayState.restore()` puts it back. Other parts of the service (the inbox's and
-the writer's counters) ride along by name. This module only stores that structure,
+What goes in is not decided here: the state checkpointed (`Checkpointed`, the buffer's
+`ReplayState`) gathers it, each of its parts (the tables, the intake, the sampler, the
+rate limiter) providing its own, and puts it back. Other parts of the service (the inbox's
+and the writer's counters) ride along by name. This module only stores that structure,
 and keeps the schedule both launchers share (`PeriodicCheckpoints`).
 
 Layout: a msgpack stream, written atomically (temporary file, fsync, rename), so
 a crash while checkpointing leaves the previous checkpoint usable:
 
 1. a header map: `v`, `kind` ("silcr-buffer"), `env`, `algo`, `written_at`,
-   `transitions` (received when it was taken), `state` and `parts`, where every
+   `transitions` (received when it was taken), `state` (by part) and `parts`, where every
    episode is replaced by `{"episode": i}`, an index into the list that follows;
 2. the episodes, each once as an `EpisodeCodec` message, even when D_O and D_E
    both hold it (in memory each table has its own copy, for vectorised sampling).
 
 Loading re-validates every episode against the run's env with the same codec
 that guards the network, so a corrupt or foreign file is refused with one line.
-Files of version 1 (silcr 0.1, which wrote the tables' fields one by one) are read too.
+Files of version 1 (silcr 0.1, which wrote the tables' fields one by one) and version 2
+(silcr 0.5, whose `state` held the counters of the intake and the sampler in one map) are read too.
 """
 
 from __future__ import annotations
@@ -27,7 +28,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, BinaryIO, Protocol
+from typing import Any, BinaryIO, Protocol
 
 import msgpack
 
@@ -38,13 +39,10 @@ from silcr.common.schedule import Every
 
 from .expert_heap import AdmissionMismatch
 
-if TYPE_CHECKING:
-    from .replay import ReplayState
-
 log = logging.getLogger("buffer")
 
 SNAPSHOT_KIND = "silcr-buffer"
-SNAPSHOT_VERSION = 2
+SNAPSHOT_VERSION = 3
 _EPISODE = "episode"  # the marker key standing for an episode in the header
 
 
@@ -56,6 +54,24 @@ class Part(Protocol):
     def state(self) -> dict: ...
 
     def restore(self, state: dict) -> None: ...
+
+
+class Checkpointed(Part, Protocol):
+    """What a buffer checkpoint is taken of (`ReplayState`)."""
+
+    limits: P.EpisodeLimits  # what a stored episode must satisfy, checked again on loading
+
+    @property
+    def transitions_received(self) -> int: ...
+
+    def identity(self) -> dict[str, str]:
+        """What a checkpoint must match to be restored (env, algo)."""
+
+    def activity(self) -> tuple[int, ...]:
+        """Changes whenever the state does."""
+
+    def locks(self) -> tuple[threading.Lock, ...]:
+        """The row storages' locks, held while an episode they hold is encoded."""
 
 
 @dataclass
@@ -102,7 +118,7 @@ def _put_episodes_back(obj: Any, episodes: list[P.Episode]) -> Any:
     return obj
 
 
-def take(state: "ReplayState", **parts: Part) -> Snapshot:
+def take(state: Checkpointed, **parts: Part) -> Snapshot:
     """A snapshot of `state` and of the named `parts` (anything with `state()`), in the service thread."""
     episodes: list[P.Episode] = []
     index: dict[tuple, int] = {}
@@ -145,7 +161,7 @@ def write(path: Path, snap: Snapshot) -> None:
 
 
 def _state_from_v1(header: dict[str, Any]) -> dict[str, Any]:
-    """A version-1 header (silcr 0.1) as today's `ReplayState.state()` layout."""
+    """A version-1 header (silcr 0.1) as version 2's `state` layout."""
     c = header["counters"]
     return {
         "counters": {"episodes_received": c["episodes_received"], "transitions_received": c["transitions_received"],
@@ -162,7 +178,23 @@ def _state_from_v1(header: dict[str, Any]) -> dict[str, Any]:
     }
 
 
-def restore(path: Path, state: "ReplayState") -> Snapshot:
+def _state_from_v2(saved: dict[str, Any]) -> dict[str, Any]:
+    """Version 2's `state` (the counters of intake and sampler in one map) by part, as today's."""
+    c = saved["counters"]
+    return {
+        "tables": {"fifo": saved["fifo"], "heap": saved["heap"]},
+        "intake": {"episodes_received": c["episodes_received"], "transitions_received": c["transitions_received"],
+                   "last_episode_version": c["last_episode_version"], "rejections": c["rejections"],
+                   "episodes_missing": c.get("episodes_missing", 0),  # absent from checkpoints before 0.4
+                   "last_seq": saved["last_seq"]},
+        "sampler": {"batches_served": c["batches_served"], "sample_requests": c["sample_requests"],
+                    "sample_requests_rejected": c["sample_requests_rejected"], "not_ready_replies": c["not_ready_replies"],
+                    "request_rejections": c.get("request_rejections", {})},  # the same
+        "limiter": saved["limiter"],
+    }
+
+
+def restore(path: Path, state: Checkpointed) -> Snapshot:
     """Load `path` into a fresh `state`; raise `SnapshotError` naming the problem.
 
     The returned snapshot's `parts` hold the named parts' states, for the caller to restore.
@@ -173,7 +205,7 @@ def restore(path: Path, state: "ReplayState") -> Snapshot:
             header = next(unpacker)
             if not isinstance(header, dict) or header.get("kind") != SNAPSHOT_KIND:
                 raise SnapshotError(f"{path} is not a silcr buffer checkpoint")
-            if header.get("v") not in (1, SNAPSHOT_VERSION):
+            if header.get("v") not in (1, 2, SNAPSHOT_VERSION):
                 raise SnapshotError(f"{path}: checkpoint version {header.get('v')} is not supported")
             here = state.identity()
             if header["env"] != here["env"] or header["algo"] != here["algo"]:
@@ -194,8 +226,10 @@ def restore(path: Path, state: "ReplayState") -> Snapshot:
 
     try:
         if header["v"] == 1:
-            saved, parts = _state_from_v1(header), {}
+            saved, parts = _state_from_v2(_state_from_v1(header)), {}
             header["transitions"] = header["counters"]["transitions_received"]
+        elif header["v"] == 2:
+            saved, parts = _state_from_v2(header["state"]), header["parts"]
         else:
             saved, parts = header["state"], header["parts"]
         state.restore(_put_episodes_back(saved, episodes))
@@ -268,26 +302,21 @@ class PeriodicCheckpoints:
         self._every = Every(interval, first_now=False, never_if_zero=True)
         self._restored: tuple[int, ...] | None = None
 
-    @staticmethod
-    def _activity(replay: "ReplayState") -> tuple[int, ...]:
-        """What changes whenever the state does: episodes offered, sample requests answered."""
-        return replay.episodes_received, sum(replay.rejections.values()), replay.sample_requests
-
-    def restore_parts(self, snap: Snapshot | None, replay: "ReplayState") -> None:
+    def restore_parts(self, snap: Snapshot | None, replay: Checkpointed) -> None:
         """Put back the parts' counters a restored snapshot holds; remember what it held."""
         if snap is not None:
             for name, part in self.parts.items():
                 if name in snap.parts:
                     part.restore(snap.parts[name])
-            self._restored = self._activity(replay)
+            self._restored = replay.activity()
 
-    def maybe(self, replay: "ReplayState", now: float | None = None) -> None:
+    def maybe(self, replay: Checkpointed, now: float | None = None) -> None:
         if self._every.due(now):
             self.writer.submit(take(replay, **self.parts))
 
-    def final(self, replay: "ReplayState") -> None:
+    def final(self, replay: Checkpointed) -> None:
         self.writer.join()
-        if self._restored == self._activity(replay) and self.writer.written == 0:
+        if self._restored == replay.activity() and self.writer.written == 0:
             # Nothing came in since the checkpoint it restored (another component could not start,
             # say): leave that file as it is rather than rewrite it.
             log.info("nothing changed since the checkpoint it resumed from; %s left as it is", self.writer.path)

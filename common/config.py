@@ -305,6 +305,24 @@ def resolve(args: argparse.Namespace, role: str, environ: Mapping[str, str] | No
     for name in FIELDS:
         if name in vars(args):
             values[name] = getattr(args, name)
+    return _checked(values, role)
+
+
+def from_options(options: Mapping[str, Any], role: str, environ: Mapping[str, str] | None = None) -> Config:
+    """A checked Config from option values by name (`total_steps=30000`, `hidden=(64, 64)`): what the
+    Python API and an experiment file's cells give. Defaults < `environ`'s SILCR_* variables (none
+    unless given) < `options`; each value type-checked as a --config file's is, then validated as the
+    command line is. A bad one raises ConfigError naming it (`--total-steps: must be >= 1, got 0`)."""
+    values = load_environ(environ or {}, role)
+    for key, value in options.items():
+        name = key.replace("-", "_")
+        if name not in FIELDS or role not in FIELDS[name].metadata["roles"]:
+            raise ConfigError(option_name(name), f"not an option of `silcr {role}`")
+        values[name] = _coerce(name, list(value) if isinstance(value, tuple) else value, "")
+    return _checked(values, role)
+
+
+def _checked(values: dict[str, Any], role: str) -> Config:
     cfg = Config(**values)
     if role == "train" and not cfg.run:
         cfg.run = f"{cfg.env.replace('/', '_')}-{cfg.algo}-{time.strftime('%Y%m%d-%H%M%S')}"

@@ -43,3 +43,33 @@ def load_checkpoint(path: Path) -> dict[str, Any]:
     if not isinstance(payload, dict) or not isinstance(payload.get("sac"), dict) or "counters" not in payload:
         raise CheckpointError(f"{path} is not a silcr learner checkpoint")
     return payload
+
+
+class LearnerCheckpoints:
+    """The run's learner checkpoint (`<run dir>/checkpoints/learner.pt`): found and loaded on --resume,
+    written when the schedule says, and a count of the writes that failed."""
+
+    def __init__(self, run_dir: Path, resume: bool) -> None:
+        self.path = run_dir / "checkpoints" / "learner.pt"
+        # --resume continues from a checkpoint when there is one, so the same command
+        # serves a first start and every restart (launcher, sweep, docker restart policy).
+        self.resumed = resume and self.path.exists()
+        self.failed = 0
+
+    def load(self) -> dict[str, Any] | None:
+        """The checkpoint to resume from, or None for a fresh start."""
+        return load_checkpoint(self.path) if self.resumed else None
+
+    def write(self, payload: dict[str, Any]) -> None:
+        """Write `payload`; a failure is counted, and raised as OSError or RuntimeError (torch.save's)."""
+        try:
+            save_checkpoint(self.path, payload)
+        except (OSError, RuntimeError):
+            self.failed += 1
+            raise
+
+    def state(self) -> dict[str, int]:
+        return {"checkpoints_failed": self.failed}
+
+    def restore(self, counters: dict[str, Any]) -> None:
+        self.failed = int(counters.get("checkpoints_failed", 0))  # absent from checkpoints before 0.4

@@ -63,7 +63,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         lrn.finish(finished)
         books = lrn.books
         role.stats.put({"time": time.time(), "updates": books.updates, "policy_version": books.policy_version,
-                        "env_steps": books.env_steps, "last_eval_return": books.last_eval_return, "finished": finished})
+                        "env_steps": books.env_steps, "last_eval_return": books.evaluations.last_eval_return, "finished": finished})
         if finished:
             shutdown.announce("finished")
         else:

@@ -15,13 +15,9 @@ import os
 import re
 import shlex
 import sys
-from typing import TYPE_CHECKING
-
-from silcr.common.algorithms import algorithm
-from silcr.common.config import ConfigError, Config, add_options, resolve
-
-if TYPE_CHECKING:
-    from silcr.common.envs import EnvSpec
+from silcr.common.commands import command  # noqa: F401  (tests and scripts import it from here)
+from silcr.common.config import ConfigError, add_options, resolve
+from silcr.deploy import preflight
 
 ROLES_HELP = {
     "train": "run router, buffer service, learner and actors locally until the step budget is spent",
@@ -150,108 +146,6 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
     return parser, subs
 
 
-def _check_runtime_options(cfg: Config, role: str) -> None:
-    """Options that can only be checked by trying them: the env id and the Zenoh endpoints."""
-    from silcr.common.zenoh_session import check_endpoint, session_config
-
-    if role != "monitor":
-        from silcr.common.envs import EnvSpec
-
-        try:
-            spec = EnvSpec.of(cfg.env)
-        except ValueError as e:
-            raise ConfigError("--env", str(e)) from None
-        _check_action_kind(cfg, spec)
-        if (algorithm(cfg.algo).ranks_own_episodes and role in ("train", "buffer") and spec.time_limit
-                and cfg.expert_capacity < spec.time_limit):
-            # D_E admits whole episodes: one that never fits leaves it empty, and the learner waits forever.
-            raise ConfigError("--expert-capacity", f"{cfg.expert_capacity} transitions cannot hold one whole episode of "
-                                                   f"{cfg.env}, which runs up to {spec.time_limit} steps; D_E would stay "
-                                                   f"empty or stop admitting longer episodes. Use at least {spec.time_limit}")
-        if role in ("train", "buffer"):
-            _check_memory(cfg, role, spec)
-            from pathlib import Path
-
-            from silcr.common.demos import DemosError, load_demos
-
-            for option, path in (("--demos", cfg.demos), ("--expert-init", cfg.expert_init)):
-                try:
-                    if path:
-                        load_demos(Path(path), spec)
-                except DemosError as e:
-                    raise ConfigError(option, str(e)) from None
-    for option, endpoints in (("--connect", cfg.connect), ("--listen", cfg.listen),
-                              ("--zenoh-listen", [cfg.zenoh_listen] if role == "train" else [])):
-        for endpoint in endpoints:
-            try:
-                check_endpoint(endpoint)
-            except ValueError as e:
-                raise ConfigError(option, str(e)) from None
-    try:
-        session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)
-    except ValueError as e:
-        raise ConfigError("--connect/--listen/--zenoh-config", str(e)) from None
-
-
-def _check_action_kind(cfg: Config, spec: "EnvSpec") -> None:
-    """What the env's kind of action rules out: algorithms and options made for the other kind."""
-    from silcr.common.algorithms import ALGORITHMS
-    from silcr.common.config import default_of, option_name
-
-    algo = algorithm(cfg.algo)
-    if spec.discrete:
-        if not algo.discrete:
-            runs = ", ".join(a.name for a in ALGORITHMS.values() if a.discrete)
-            raise ConfigError("--algo", f"--algo {cfg.algo} does not run with discrete actions ({cfg.env} has "
-                                        f"{spec.n_actions}); these do: {runs}")
-        for name in ("expert_init", "tanh_log_prob"):
-            if getattr(cfg, name) != default_of(name):
-                raise ConfigError(option_name(name), f"applies to continuous actions only; {cfg.env} has "
-                                                     f"{spec.n_actions} discrete actions")
-        from silcr.common.minigrid_obs import is_minigrid
-
-        if is_minigrid(cfg.env) and not algo.uses_env_reward and not cfg.absorbing_terminal:
-            # Not an error (the paper's rule is a valid choice to study), but a trap for a new user.
-            print(f"silcr: warning: {cfg.env}'s episodes end at the goal; with --algo {cfg.algo}'s labels and without "
-                  f"--absorbing-terminal the agent learns to avoid it (docs/algorithm.md, 'Discrete actions')",
-                  file=sys.stderr)
-    elif cfg.target_entropy_scale != default_of("target_entropy_scale"):
-        raise ConfigError("--target-entropy-scale", f"applies to discrete actions only; {cfg.env} has continuous ones "
-                                                    f"(their target entropy is -{spec.act_dim}, minus the action size)")
-
-
-def _check_memory(cfg: Config, role: str, spec: "EnvSpec") -> None:
-    """Buffer capacities and actor processes that this machine's available memory cannot hold."""
-    from silcr.buffer_service.replay import reserved_bytes
-    from silcr.common.resources import ACTOR_RSS_BYTES, MAX_LOCAL_ACTORS, available_memory, gib
-
-    if role == "train" and cfg.actors > MAX_LOCAL_ACTORS:
-        raise ConfigError("--actors", f"{cfg.actors} is more than {MAX_LOCAL_ACTORS} actors on one machine; use "
-                                      f"--envs-per-actor for more envs per process, or start actors on other "
-                                      f"machines with `silcr actor` (docs/deployment.md)")
-    available = available_memory()
-    if available is None:
-        return
-    buffer = reserved_bytes(cfg, spec)
-    if buffer > available:
-        option = "--online-capacity" if cfg.online_capacity * 4 >= cfg.expert_capacity else "--expert-capacity"
-        raise ConfigError(option, f"D_O of {cfg.online_capacity:,} and D_E of {cfg.expert_capacity:,} transitions of "
-                                  f"{cfg.env} would reserve {gib(buffer)}; this machine has {gib(available)} available")
-    actors = cfg.actors * ACTOR_RSS_BYTES if role == "train" and not cfg.single_process else 0
-    if buffer + actors > available:
-        raise ConfigError("--actors", f"{cfg.actors} actor processes (about {gib(actors)}) and the buffer's "
-                                      f"{gib(buffer)} need more than the {gib(available)} this machine has available")
-
-
-def command(*args: str) -> list[str]:
-    """The command line that runs `silcr ARGS` in a child process with this interpreter.
-
-    Not `python -m silcr.cli`: that puts the working directory first on sys.path, and from a
-    source checkout with a non-editable install it finds the checkout's `silcr/` folder (the
-    CLI alone, without silcr.common) instead of the installed package."""
-    return [sys.executable, "-c", "import sys; sys.path.pop(0); from silcr.cli import main; sys.exit(main())", *args]
-
-
 def main(argv: list[str] | None = None) -> int:
     try:
         return _main(argv)
@@ -343,7 +237,7 @@ def _main(argv: list[str] | None) -> int:
 
     try:
         cfg = resolve(args, role)
-        _check_runtime_options(cfg, role)
+        preflight.check(cfg, role)
         if role == "learner" and cfg.device == "cuda":
             from silcr.learner.update import pick_device
 
@@ -355,27 +249,11 @@ def _main(argv: list[str] | None) -> int:
         subs[role].error(str(e))
 
     if role == "train":
-        from silcr.common.run_lock import RunInUse, check_free, hold
+        from silcr.common.run_lock import RunInUse
+        from silcr.deploy.launch import train
 
-        try:  # in this order: a live run of the same name is the likelier reason for a busy port
-            check_free(cfg.run_dir)
-            if not cfg.single_process:
-                from silcr.deploy.local import port_in_use
-
-                if port_in_use(cfg.zenoh_listen):
-                    raise ConfigError("--zenoh-listen", f"{cfg.zenoh_listen} is already in use (another run?); "
-                                                        f"pick another port")
-            with hold(cfg.run_dir):  # for the run's life: one run directory, one run
-                if cfg.single_process:
-                    from silcr import spin_in_single_process
-
-                    spin_in_single_process()  # before torch loads: it owns the cores (silcr/__init__.py)
-                    from silcr.deploy.single_process import run_single_process
-
-                    return run_single_process(cfg)
-                from silcr.deploy.local import run_train
-
-                return run_train(cfg)
+        try:
+            return train(cfg)
         except (RunInUse, ConfigError) as e:
             subs[role].error(str(e))
     stop = StopFlag().install_signal_handlers()

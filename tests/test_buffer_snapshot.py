@@ -46,8 +46,9 @@ def test_snapshot_restores_both_tables_and_counters(tmp_path, spec):
     assert [e.seq for e in back.fifo.episodes()] == [e.seq for e in state.fifo.episodes()]
     assert sorted([e.episode_return for e in back.heap.episodes()]) == sorted([e.episode_return for e in state.heap.episodes()])
     assert len(back.heap) == len(state.heap) and len(back.fifo) == len(state.fifo)
-    for name in ("episodes_received", "transitions_received", "batches_served", "last_seq"):
-        assert getattr(back, name) == getattr(state, name)
+    for part, name in (("intake", "episodes_received"), ("intake", "transitions_received"),
+                       ("sampler", "batches_served"), ("intake", "last_seq")):
+        assert getattr(getattr(back, part), name) == getattr(getattr(state, part), name)
     assert (back.limiter.inserts, back.limiter.samples) == (state.limiter.inserts, state.limiter.samples)
     # The restored tables hold the same data, row for row.
     for a, b in zip(state.fifo.episodes(), back.fifo.episodes()):
@@ -165,13 +166,14 @@ def test_a_version_1_checkpoint_still_loads(tmp_path, spec):
         return index[key]
 
     header = {"v": 1, "kind": "silcr-buffer", "env": ENV, "algo": "silcr", "written_at": 0.0,
-              "counters": {"episodes_received": state.episodes_received, "transitions_received": state.transitions_received,
-                           "batches_served": state.batches_served, "sample_requests": state.sample_requests,
-                           "last_episode_version": state.last_episode_version, "rejections": {},
+              "counters": {"episodes_received": state.intake.episodes_received,
+                           "transitions_received": state.transitions_received,
+                           "batches_served": state.sampler.batches_served, "sample_requests": state.sampler.sample_requests,
+                           "last_episode_version": state.intake.last_episode_version, "rejections": {},
                            "fifo_evicted": state.fifo.evicted_episodes,
                            "heap": [state.heap.admitted, state.heap.rejected, state.heap.evicted]},
               "limiter": {"inserts": state.limiter.inserts, "samples": state.limiter.samples},
-              "last_seq": [[a, inc, seq] for (a, inc), seq in state.last_seq.items()],
+              "last_seq": [[a, inc, seq] for (a, inc), seq in state.intake.last_seq.items()],
               "fifo": [ref(e) for e in state.fifo.episodes()],
               "heap": [[ref(e), ret, order] for e, ret, order in state.heap.state()["entries"]]}
     header["n_episodes"] = len(episodes)
@@ -182,3 +184,35 @@ def test_a_version_1_checkpoint_still_loads(tmp_path, spec):
     assert [e.seq for e in back.fifo.episodes()] == [e.seq for e in state.fifo.episodes()]
     assert sorted([e.episode_return for e in back.heap.episodes()]) == sorted([e.episode_return for e in state.heap.episodes()])
     assert back.transitions_received == state.transitions_received and back.limiter.samples == state.limiter.samples
+
+
+def test_a_version_2_checkpoint_loads_into_the_parts(tmp_path, spec):
+    """silcr 0.5 (before the buffer's state was split into parts) kept the intake's and the sampler's counters
+    in one map. tests/golden/buffer-v2.ckpt was written by that code (commit 79d53fd), with every stats field
+    it published beside it in buffer-v2.json: all of them come back, and the restored buffer goes on."""
+    import json
+
+    from tests.helpers import REPO
+
+    golden = REPO / "tests" / "golden"
+    expected = json.loads((golden / "buffer-v2.json").read_text())
+    back = _state(spec)
+    snap = snapshot.restore(golden / "buffer-v2.ckpt", back)
+    assert snap.header["v"] == 2
+    stats = back.stats()
+    for key, value in expected.items():
+        if key in stats and key not in ("run",):
+            assert stats[key] == value, key
+    assert [e.seq for e in back.fifo.episodes()] == expected["fifo_seqs"]
+    assert sorted(e.episode_return for e in back.heap.episodes()) == expected["heap_returns"]
+    assert back.limiter.state() == expected["limiter"]
+    assert [[a, inc, s] for (a, inc), s in back.intake.last_seq.items()] == expected["last_seq"]
+    with pytest.raises(P.ProtocolError, match="again"):  # the senders' sequence numbers came back too
+        back.ingest(make_episode(5, ret=0.0, seq=expected["last_seq"][0][2], start=0).encode())
+    # written again, it is today's version, by part
+    snapshot.write(tmp_path / "v3.ckpt", snapshot.take(back))
+    again = _state(spec)
+    assert snapshot.restore(tmp_path / "v3.ckpt", again).header["v"] == snapshot.SNAPSHOT_VERSION == 3
+    assert set(snapshot.take(again).header["state"]) == {"tables", "intake", "sampler", "limiter"}
+    assert {k: v for k, v in again.stats().items() if k not in ("time", "uptime_s")} == \
+        {k: v for k, v in back.stats().items() if k not in ("time", "uptime_s")}

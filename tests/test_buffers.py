@@ -208,9 +208,9 @@ def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
     restarted = make_episode(5, ret=1.0, seq=0)
     restarted.incarnation = 8
     state.ingest(restarted.encode())
-    assert state.episodes_received == 2 and len(state.fifo) == 10
-    assert state.rejections == {"duplicate": 1}
-    assert state.episodes_missing == 0
+    assert state.intake.episodes_received == 2 and len(state.fifo) == 10
+    assert state.intake.rejections == {"duplicate": 1}
+    assert state.intake.episodes_missing == 0
 
 
 def test_gaps_in_an_actors_sequence_numbers_are_counted_as_missing_episodes():
@@ -225,10 +225,10 @@ def test_gaps_in_an_actors_sequence_numbers_are_counted_as_missing_episodes():
             ep = make_episode(5, ret=1.0, seq=seq)
             ep.incarnation = incarnation
             state.ingest(ep.encode())
-    assert state.episodes_missing == 1 + 2 and state.stats()["episodes_missing"] == 3
+    assert state.intake.episodes_missing == 1 + 2 and state.stats()["episodes_missing"] == 3
     again = ReplayState(cfg, EnvSpec.of("InvertedPendulum-v5"))
     again.restore(state.state())
-    assert again.episodes_missing == 3  # kept across a restart
+    assert again.intake.episodes_missing == 3  # kept across a restart
 
 
 # --- contiguous storage: ring reuse, compaction, copies for holders ------------------

@@ -86,10 +86,10 @@ def test_the_limiter_takes_each_learner_s_count_from_its_first_request():
     first = P.SampleRequest(4, 8, learner=7, updates=0)
     assert replay.answer(first.encode()).meta["batches"] == 4 and replay.limiter.samples == 4
     replay.answer(P.SampleRequest(4, 8, learner=7, updates=1).encode())  # lagging count: ignored
-    assert replay.limiter.samples == 8 and replay.limiter_realigned == 0
+    assert replay.limiter.samples == 8 and replay.sampler.limiter_realigned == 0
     # learner 9 restarted from a checkpoint at 2 updates: 6 served updates were lost with learner 7
     reply = replay.answer(P.SampleRequest(4, 8, learner=9, updates=2).encode())
-    assert replay.limiter.samples == 2 + 4 and replay.limiter_realigned == 1 and reply.meta["batches"] == 4
+    assert replay.limiter.samples == 2 + 4 and replay.sampler.limiter_realigned == 1 and reply.meta["batches"] == 4
     replay.answer(P.SampleRequest(4, 8).encode())  # no learner, no count: an old client
     assert replay.limiter.samples == 10 and replay.stats()["limiter_realigned"] == 1
     with pytest.raises(P.ProtocolError, match="'updates' is -1"):

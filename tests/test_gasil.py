@@ -118,7 +118,7 @@ def test_a_buffer_without_d_e_refuses_discriminator_rows_and_counts_it(tmp_path)
     replay.store(make_episode(20))
     with pytest.raises(P.ProtocolError, match="disc_batch_size"):
         replay.answer(P.SampleRequest(1, 8, 8, 100).encode())
-    assert replay.sample_requests_rejected == 1
+    assert replay.sampler.sample_requests_rejected == 1
 
 
 # -- the learner: r_D per batch, checkpoints ----------------------------------------

@@ -110,3 +110,91 @@ def test_the_installed_silcr_runs_beside_another_projects_common(installed, tmp_
     cell = tmp_path / "tiny" / "installed_InvertedPendulum-v5_s0"
     assert r.returncode == 0, r.stdout + r.stderr + (cell / "sweep.log").read_text()
     assert (cell / "progress.csv").read_text().count("\n") >= 3
+
+
+# -- the house: classes of one concept, modules that do not reach back (issue 40) ------------------------
+
+#: The source folders and the package each installs as (pyproject.toml's package-dir).
+PACKAGES = {"silcr": "silcr", "actor": "silcr.actor", "learner": "silcr.learner", "buffer_service": "silcr.buffer_service",
+            "common": "silcr.common", "deploy": "silcr.deploy", "bench": "silcr.bench"}
+MAX_CLASS_LINES = 180
+
+
+def _modules() -> dict[str, Path]:
+    out = {}
+    for folder, package in PACKAGES.items():
+        for f in sorted((REPO / folder).glob("*.py")):
+            out[package if f.stem == "__init__" else f"{package}.{f.stem}"] = f
+    return out
+
+
+def import_graph(modules: dict[str, Path]) -> dict[str, set[str]]:
+    """Which project modules each module imports, at the top or inside a function (TYPE_CHECKING too)."""
+    graph = {}
+    for name, path in modules.items():
+        base = name if path.stem == "__init__" else name.rsplit(".", 1)[0]
+        found: set[str] = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                found |= {a.name for a in node.names}
+            elif isinstance(node, ast.ImportFrom):
+                pkg = base
+                for _ in range(node.level - 1):
+                    pkg = pkg.rsplit(".", 1)[0]
+                module = (f"{pkg}.{node.module}" if node.module else pkg) if node.level else node.module
+                found |= {module} | {f"{module}.{a.name}" for a in node.names}  # `from pkg import module`
+        graph[name] = {m for m in found if m in modules and m != name}
+    return graph
+
+
+def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
+    """The strongly connected groups of more than one module (Tarjan): each holds an import circle."""
+    index: dict[str, int] = {}
+    low: dict[str, int] = {}
+    stack: list[str] = []
+    cycles: list[list[str]] = []
+
+    def visit(v: str) -> None:
+        index[v] = low[v] = len(index)
+        stack.append(v)
+        for w in sorted(graph[v]):
+            if w not in index:
+                visit(w)
+                low[v] = min(low[v], low[w])
+            elif w in stack:
+                low[v] = min(low[v], index[w])
+        if low[v] == index[v]:
+            group = []
+            while True:
+                w = stack.pop()
+                group.append(w)
+                if w == v:
+                    break
+            if len(group) > 1:
+                cycles.append(sorted(group))
+
+    for v in sorted(graph):
+        if v not in index:
+            visit(v)
+    return cycles
+
+
+def test_no_two_modules_import_each_other_even_through_others():
+    cycles = import_cycles(import_graph(_modules()))
+    assert not cycles, f"import circles: {cycles}"
+
+
+def test_the_circle_check_finds_a_circle_through_a_function_level_import():
+    """The check itself: a circle closed by an import inside a function (as the CLI and the sweep had) is found."""
+    graph = import_graph(_modules())
+    graph["silcr.common.config"] = graph["silcr.common.config"] | {"silcr.deploy.sweep"}  # sweep imports config
+    assert any("silcr.deploy.sweep" in c and "silcr.common.config" in c for c in import_cycles(graph))
+    tree = ast.parse("def f():\n    from silcr.cli import main\n")
+    assert any(isinstance(n, ast.ImportFrom) and n.module == "silcr.cli" for n in ast.walk(tree))
+
+
+def test_no_class_outside_the_tests_is_longer_than_180_lines():
+    long = [f"{name}.{node.name} ({node.end_lineno - node.lineno + 1} lines)"
+            for name, path in _modules().items() for node in ast.walk(ast.parse(path.read_text()))
+            if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > MAX_CLASS_LINES]
+    assert not long, f"classes over {MAX_CLASS_LINES} lines: {long}"

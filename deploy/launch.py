@@ -1,0 +1,35 @@
+"""Running a checked configuration: the one path below `silcr train` and the Python API.
+
+`train(cfg)` runs `cfg` to its end and returns the exit code `silcr train` ends with: in this
+process with `--single-process`, else as a router, a buffer service, a learner and the actors
+in processes of their own (`local.run_train`). Before anything starts it takes the run
+directory (one run per directory: `run_lock`) and, for a distributed run, checks that the
+router's port is free; either refusal raises before a file is written.
+"""
+
+from __future__ import annotations
+
+from silcr.common.config import Config, ConfigError
+from silcr.common.run_lock import check_free, hold
+
+
+def train(cfg: Config) -> int:
+    """Run `cfg` (already checked: `config.resolve`/`from_options` and `preflight.check`); raise
+    RunInUse when another process holds its run directory, ConfigError when the router's port is taken."""
+    check_free(cfg.run_dir)  # first: a live run of the same name is the likelier reason for a busy port
+    if not cfg.single_process:
+        from silcr.deploy.local import port_in_use
+
+        if port_in_use(cfg.zenoh_listen):
+            raise ConfigError("--zenoh-listen", f"{cfg.zenoh_listen} is already in use (another run?); pick another port")
+    with hold(cfg.run_dir):  # for the run's life: one run directory, one run
+        if cfg.single_process:
+            from silcr import spin_in_single_process
+
+            spin_in_single_process()  # before torch loads: it owns the cores (silcr/__init__.py)
+            from silcr.deploy.single_process import run_single_process
+
+            return run_single_process(cfg)
+        from silcr.deploy.local import run_train
+
+        return run_train(cfg)

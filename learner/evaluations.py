@@ -1,0 +1,88 @@
+"""The learner's evaluations: when they fall due, running them, and the progress row each writes.
+
+Every `--eval-interval` env steps (and once before the first update, every curve's baseline,
+and once at the end) the current policy plays `--eval-episodes` episodes with the dense reward
+(`evaluate.evaluate`, deterministic unless `--eval-stochastic`, seeded by the evaluation's index),
+and one row goes to progress.csv and TensorBoard (`progress.ProgressLog`): the evaluation, the
+last update's statistics (`update.Update.stats`) and D_E as the buffer last described it.
+Its counters save and restore with the learner checkpoint.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from pathlib import Path
+from typing import Any
+
+from silcr.common import protocol as P
+from silcr.common import seeds
+from silcr.common.config import Config
+from silcr.common.envs import EnvSpec
+
+from .evaluate import evaluate
+from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, GASIL_COLUMNS, ProgressLog
+
+log = logging.getLogger("learner")
+
+
+class Evaluations:
+    COUNTERS = ("next_eval", "evals", "last_eval_return")
+
+    def __init__(self, cfg: Config, spec: EnvSpec, run_dir: Path, resumed: bool) -> None:
+        self.cfg, self.spec = cfg, spec
+        self.next_eval = 0
+        self.evals = 0
+        self.last_eval_return: float | None = None
+        self.last_eval_updates = -1  # the update count the last evaluation saw (not checkpointed)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        self.progress = ProgressLog(run_dir, resume=resumed)
+
+    def due(self, env_steps: int) -> bool:
+        return env_steps >= self.next_eval
+
+    def scheduled(self, env_steps: int) -> None:
+        """The next evaluation falls at the next multiple of --eval-interval after `env_steps`."""
+        self.next_eval = (env_steps // self.cfg.eval_interval + 1) * self.cfg.eval_interval
+
+    def run(self, weights: P.Weights, row: dict[str, Any], update_stats: dict[str, float], updates: int,
+            buffer_meta: dict[str, Any]) -> None:
+        """Evaluate `weights` and write a progress row: `row` (time, counters) with the evaluation, the last
+        update's statistics and D_E's description added."""
+        if self.cfg.eval_episodes == 0:
+            return
+        t0 = time.monotonic()
+        mean, std, length, success = evaluate(weights, self.spec, self.cfg.eval_episodes,
+                                              seeds.evaluation(self.cfg.seed, self.evals),
+                                              deterministic=not self.cfg.eval_stochastic)
+        self.evals += 1
+        self.last_eval_return = mean
+        self.last_eval_updates = updates
+        losses = update_stats
+        self.progress.row(row | {
+            "eval_return": mean,
+            "eval_return_std": std,
+            "eval_length": length,
+            "critic_loss": losses.get("critic_loss", float("nan")),
+            "actor_loss": losses.get("actor_loss", float("nan")),
+            **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS + GASIL_COLUMNS},
+            **{k: buffer_meta.get(k) for k in EXPERT_COLUMNS},
+            "eval_success": "" if success is None else success,
+            "q_target_clipped": losses.get("q_target_clipped", float("nan")),
+        })
+        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f%s, %.1fs)",
+                 row["env_steps"], updates, mean, std, length,
+                 "" if success is None else f", goal reached in {success:.0%}", time.monotonic() - t0)
+
+    def scalars(self, values: dict[str, float], step: int) -> None:
+        self.progress.scalars(values, step)
+
+    def close(self) -> None:
+        self.progress.close()
+
+    def state(self) -> dict[str, Any]:
+        return {name: getattr(self, name) for name in self.COUNTERS}
+
+    def restore(self, counters: dict[str, Any]) -> None:
+        for name in self.COUNTERS:
+            setattr(self, name, counters[name])
