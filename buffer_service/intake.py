@@ -34,6 +34,9 @@ class Intake:
         self.rejections: collections.Counter[str] = collections.Counter()
         # Last sequence number per (actor id, incarnation): an episode is never stored twice.
         self.last_seq: dict[tuple[int, int], int] = {}
+        # The updates served when the latest episode arrived (not checkpointed: counted from each start),
+        # so that how many the learner made on tables that no longer changed is known at the end.
+        self.samples_at_last_episode = 0
 
     def ingest(self, payload: bytes) -> P.Episode:
         """Store one episode message; raise `ProtocolError` (and count it) if it is rejected."""
@@ -67,6 +70,7 @@ class Intake:
         self.last_seq[sender] = ep.seq
         self.tables.add(ep)
         self.limiter.record_insert(ep.length)
+        self.samples_at_last_episode = self.limiter.samples
         self.episodes_received += 1
         self.transitions_received += ep.length
         self.last_episode_version = max(self.last_episode_version, ep.policy_version)
@@ -89,4 +93,5 @@ class Intake:
             "episodes_missing": self.episodes_missing,
             "rejections": dict(self.rejections),
             "latest_episode_policy_version": self.last_episode_version,
+            "updates_since_last_episode": self.limiter.samples - self.samples_at_last_episode,
         }

@@ -14,6 +14,18 @@ learner does `spi` updates per environment step, whether 1 actor or 16 feed it:
 The window is at least one update wide and, because the learner can always be
 served part of a request, a paused actor always implies a learner that can
 sample: the two sides can never both wait (tests/test_rate_limiter.py).
+
+The run's end (`final_inserts`, the run's step budget): with the hysteresis alone, actors
+that outpace the learner sit at the window's top and are paused until the learner is back
+at the centre, so the last `tolerance` updates of a run trained on tables that no longer
+changed (in one MiniGrid run that turned a policy that reached the goal at every
+evaluation into one that never did at the closing one). Over the last `2 * tolerance /
+spi` inserts of the budget the actors keep pace instead: paused whenever they are ahead
+of the ratio at all, resumed as soon as they are not. Data keeps arriving until the
+learner's last update (the actors go on stepping past the budget if the learner still
+has updates to make; those episodes are stored like any other), and the updates made
+after the last episode are at most about one episode's worth (docs/algorithm.md, "Rate
+control").
 """
 
 from __future__ import annotations
@@ -28,6 +40,7 @@ class SamplesPerInsertLimiter:
         min_size_to_sample: int = 10_240,
         tolerance: float = 2_000.0,
         throttle_inserts: bool = True,
+        final_inserts: int | None = None,
     ) -> None:
         if not samples_per_insert > 0:
             raise ValueError(f"samples_per_insert must be > 0, got {samples_per_insert}")
@@ -41,6 +54,7 @@ class SamplesPerInsertLimiter:
         self.min_size_to_sample = int(min_size_to_sample)
         self.tolerance = float(tolerance)
         self.throttle_inserts = throttle_inserts
+        self.final_inserts = final_inserts
         self.inserts = 0
         self.samples = 0
         self._paused = False
@@ -76,10 +90,17 @@ class SamplesPerInsertLimiter:
     def record_sample(self, n: int) -> None:
         self.samples += n
 
+    def at_the_end(self) -> bool:
+        """Within the last 2 * tolerance / spi inserts of the run's budget (or past it): actors keep pace."""
+        return (self.final_inserts is not None
+                and self.inserts >= self.final_inserts - 2 * self.tolerance / self.samples_per_insert)
+
     def inserts_paused(self) -> bool:
         """Whether actors should pause now (updates the hysteresis state)."""
         if not self.throttle_inserts or self.warming_up():
             self._paused = False
+        elif self.at_the_end():
+            self._paused = self.error > self.centre
         elif self._paused:
             self._paused = self.error > self.centre
         else:

@@ -62,7 +62,8 @@ class ReplayState:
         # The tables by the paper's names, for the launchers and tests that look into them.
         self.fifo, self.heap, self.labeller = self.tables.fifo, self.tables.heap, self.tables.labeller
         self.limiter = SamplesPerInsertLimiter(
-            cfg.samples_per_insert, cfg.learning_starts, cfg.spi_tolerance, throttle_inserts=not cfg.no_throttle
+            cfg.samples_per_insert, cfg.learning_starts, cfg.spi_tolerance, throttle_inserts=not cfg.no_throttle,
+            final_inserts=cfg.total_steps,
         )
         self.limits = spec.episode_limits(cfg.max_episode_bytes)
         self.rng = np.random.default_rng(seeds.buffer_sampling(cfg.seed))

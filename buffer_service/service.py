@@ -78,9 +78,10 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
                 } | checkpoints.stats() | restored)
         server.close()
     checkpoints.final(replay)
-    log.info("buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d missing, %d batches served",
-             stop.reason, replay.intake.episodes_received, replay.transitions_received, sum(replay.intake.rejections.values()),
-             replay.intake.episodes_missing, replay.sampler.batches_served)
+    log.info("buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d missing, %d batches served, "
+             "%d of them after the last episode arrived", stop.reason, replay.intake.episodes_received,
+             replay.transitions_received, sum(replay.intake.rejections.values()), replay.intake.episodes_missing,
+             replay.sampler.batches_served, replay.stats()["updates_since_last_episode"])
     return 0
 
 

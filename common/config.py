@@ -115,7 +115,9 @@ class Config:
                               "none: no clip", choices=Q_TARGET_CLIPS, absent="none")
     tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
-    total_steps: int = _opt(2_000_000, {"train", "learner"}, "environment-step budget of the run")
+    total_steps: int = _opt(2_000_000, {"train", "learner", "buffer"}, "environment-step budget of the run (the buffer "
+                            "service makes the actors keep pace with the learner over its last stretch: docs/algorithm.md, "
+                            "'Rate control')")
     weights_interval: int = _opt(50, {"train", "learner"}, "publish policy weights every N updates")
     weights_fanout_mb_s: float = _opt(100.0, {"train", "learner"}, "budget of the weights' traffic to all actors "
                                       "together, MB/s: a publication may follow the last after actors x its size / "

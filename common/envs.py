@@ -11,9 +11,11 @@ own test tasks, `silcr/PointGoal-v0` and its discrete twin `silcr/PointGoalDiscr
 
 from __future__ import annotations
 
+import importlib
 import logging
+import re
 from dataclasses import dataclass
-from typing import Any, SupportsFloat
+from typing import Any, Callable, SupportsFloat
 
 import gymnasium as gym
 import numpy as np
@@ -77,11 +79,39 @@ def _route_mujoco_warnings() -> None:
     mujoco.set_mju_user_warning(warn)
 
 
+#: `package.module:factory`: a zero-argument callable (a function or an env class) that returns a
+#: gymnasium.Env, named so that every process can import it (the Python API's `env=callable`).
+_FACTORY_REF = re.compile(r"^[A-Za-z_][\w.]*:[A-Za-z_][\w.]*$")
+
+
+def is_factory_ref(env_id: str) -> bool:
+    """`module:name` with `name` a Python name (gymnasium's `module:EnvId-v0` has a version and is not one)."""
+    return bool(_FACTORY_REF.match(env_id))
+
+
+def factory_of(env_id: str) -> Callable[[], gym.Env]:
+    """The callable a `module:qualname` reference names; ValueError naming what is missing."""
+    module_name, qualname = env_id.split(":", 1)
+    try:
+        obj: Any = importlib.import_module(module_name)
+    except ImportError as e:
+        raise ValueError(f"environment {env_id!r}: cannot import {module_name} ({e})") from None
+    for part in qualname.split("."):
+        obj = getattr(obj, part, None)
+        if obj is None:
+            raise ValueError(f"environment {env_id!r}: {module_name} has no {qualname}")
+    if not callable(obj):
+        raise ValueError(f"environment {env_id!r}: {qualname} is not callable")
+    return obj
+
+
 def make_env(env_id: str, reward: str = "dense", **kwargs: Any) -> gym.Env:
     """Make `env_id` with dense or episodic reward; raise ValueError with a clear message on a bad id.
 
-    Observations must be flat vectors; actions a flat Box (continuous) or a Discrete set
-    (action indices). MiniGrid tasks get a flat one-hot view (`minigrid_obs`).
+    `env_id` is a gymnasium id (`Hopper-v5`, `module:EnvId-v0`) or `module:factory`, a
+    callable that returns the env (`is_factory_ref`). Observations must be flat vectors;
+    actions a flat Box (continuous) or a Discrete set (action indices). MiniGrid tasks get a
+    flat one-hot view (`minigrid_obs`).
     """
     _route_mujoco_warnings()
     if reward not in REWARD_MODES:
@@ -92,6 +122,11 @@ def make_env(env_id: str, reward: str = "dense", **kwargs: Any) -> gym.Env:
         env_id = EPISODIC_IDS[env_id]
     if is_minigrid(env_id):
         env = make_minigrid(env_id, **kwargs)
+    elif is_factory_ref(env_id):
+        made = factory_of(env_id)(**kwargs)
+        if not isinstance(made, gym.Env):
+            raise ValueError(f"environment {env_id!r}: the callable returned {type(made).__name__}, not a gymnasium.Env")
+        env = made
     else:
         try:
             env = gym.make(env_id, **kwargs)
@@ -186,6 +221,17 @@ class EnvSpec:
                            limit, n)
         finally:
             env.close()
+
+    @property
+    def observation_space(self) -> gym.spaces.Box:
+        return gym.spaces.Box(-np.inf, np.inf, (self.obs_dim,), np.float32)
+
+    @property
+    def action_space(self) -> gym.spaces.Space:
+        """The env's actions as it takes them: Discrete(n), or a Box with the env's bounds."""
+        if self.discrete:
+            return gym.spaces.Discrete(self.n_actions)
+        return gym.spaces.Box(self.action_low, self.action_high, dtype=np.float32)
 
     def to_env_action(self, action: np.ndarray) -> np.ndarray:
         """The policy's action as the env takes it: an index as is; a continuous one mapped from [-1, 1]

@@ -24,7 +24,7 @@ def train(cfg: Config) -> int:
             raise ConfigError("--zenoh-listen", f"{cfg.zenoh_listen} is already in use (another run?); pick another port")
     with hold(cfg.run_dir):  # for the run's life: one run directory, one run
         if cfg.single_process:
-            from silcr import spin_in_single_process
+            from silcr.process_env import spin_in_single_process
 
             spin_in_single_process()  # before torch loads: it owns the cores (silcr/__init__.py)
             from silcr.deploy.single_process import run_single_process

@@ -157,6 +157,7 @@ def run_train(cfg: Config) -> int:
     stats = StatsSnapshot(keys)
     code = 0
     previous = signal.getsignal(signal.SIGTERM)
+    previous_int = signal.getsignal(signal.SIGINT)  # the caller's (the Python API's caller's: a notebook's, say)
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     try:
         run.start("router", cfg, "router")
@@ -196,7 +197,7 @@ def run_train(cfg: Config) -> int:
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # let the children finish their clean exit
         run.stop_all(order)
-        signal.signal(signal.SIGINT, signal.default_int_handler)
+        signal.signal(signal.SIGINT, previous_int)
         signal.signal(signal.SIGTERM, previous)
     if code == 0:
         print(done_message(run_dir))

@@ -33,6 +33,7 @@ import logging
 import signal
 import sys
 import time
+from typing import Any, Callable
 
 from silcr.actor.service import Actor, policy_factory, random_initial_weights
 from silcr.buffer_service import snapshot
@@ -50,6 +51,99 @@ from silcr.learner.learner import Learner
 log = logging.getLogger("train")
 
 
+class ResumeError(RuntimeError):
+    """A checkpoint to resume from cannot be used (the message names it and why)."""
+
+
+class SingleProcessRun:
+    """One run's buffer, learner and actors in this process (what `silcr train --single-process` and the
+    Python API's `actors=0` drive). `run()` steps them to `cfg.total_steps`; raise the budget and call it
+    again to go on with the same tables and counters. `close()` writes the last checkpoints."""
+
+    def __init__(self, cfg: Config) -> None:
+        self.cfg = cfg
+        self.spec = spec = EnvSpec.of(cfg.env)
+        try:
+            self.replay, snap = open_replay(cfg, spec)
+        except snapshot.SnapshotError as e:
+            raise ResumeError(str(e)) from None
+        self.board = InProcessWeights()
+        try:
+            self.learner = Learner(cfg, spec, self.board)
+        except CheckpointError as e:
+            raise ResumeError(str(e)) from None
+        self.learner.start()  # the first weights are on the board before any actor acts
+        # A hard kill leaves the two checkpoints at different moments: the limiter takes the learner's count.
+        self.replay.take_learner_count(self.learner.books.incarnation, self.learner.books.updates)
+        actor_cfg = cfg
+        if self.replay.transitions_received:  # resumed actors must not replay the episodes of the first start
+            actor_cfg = Config(**cfg.to_dict() | {"seed": seeds.resumed(cfg.seed, self.replay.transitions_received)})
+        self.actors = [Actor(actor_cfg, spec, i, InProcessEpisodeWriter(self.replay),
+                             self.board.client(policy_factory(spec),
+                                               random_initial_weights(actor_cfg, spec, seeds.actor(actor_cfg.seed, i))()))
+                       for i in range(cfg.actors)]
+        self.stream = InProcessBatchStream(self.replay, self.learner.sample_request(), None)
+        self.checkpoints = snapshot.PeriodicCheckpoints(checkpoint_path(cfg), cfg.buffer_checkpoint_interval)
+        self.checkpoints.restore_parts(snap, self.replay)
+        self._polled = [0] * len(self.actors)
+        self._reported = 0  # evaluations told to `run`'s callers
+
+    def run(self, stop: StopFlag, display: TrainingDisplay | None = None,
+            evaluated: Callable[[dict[str, Any]], bool] | None = None) -> bool:
+        """Step the actors, the learner and the schedules until the budget is spent (True) or `stop` is set or
+        `evaluated` (given each new progress row) returns False (False). The learner's last weights, evaluation
+        and checkpoint follow either way (`Learner.settle`); its records stay open for another `run`."""
+        cfg, replay, learner = self.cfg, self.replay, self.learner
+        finished = False
+        show = Every(cfg.stats_interval)
+        while not stop.is_set():
+            if evaluated is not None and self._told(evaluated) is False:
+                break
+            collecting = replay.transitions_received < cfg.total_steps
+            if collecting:
+                for i, actor in enumerate(self.actors):
+                    actor.step()
+                    if actor.steps - self._polled[i] >= cfg.weights_poll_steps:
+                        self._polled[i] = actor.steps
+                        actor.weights.update()
+            for batch in self.stream.due():
+                learner.step(batch)
+            learner.see(self.stream.last_meta)
+            learner.poll()
+            if learner.done(starved=not collecting):
+                finished = True
+                break
+            now = time.monotonic()
+            self.checkpoints.maybe(replay, now)
+            if show.due(now):
+                stats = learner.stats()
+                learner.record_scalars(stats)
+                if display is not None:
+                    display.show(replay.transitions_received, stats)
+        if display is not None:
+            display.show(replay.transitions_received, learner.stats())
+        self.checkpoint_written = learner.settle(finished)
+        if finished and evaluated is not None:
+            self._told(evaluated)  # the closing evaluation
+        return finished
+
+    def _told(self, evaluated: Callable[[dict[str, Any]], bool]) -> bool | None:
+        """Give `evaluated` the newest progress row if it has not seen it (one evaluation at most falls
+        between two calls, the first one before the loop); what it returned."""
+        evaluations = self.learner.books.evaluations
+        if evaluations.evals == self._reported or not evaluations.last_row:
+            return None
+        self._reported = evaluations.evals
+        return evaluated(evaluations.last_row)
+
+    def close(self) -> None:
+        """Close the learner's records and write the buffer's last checkpoint; the actors' envs close."""
+        self.learner.books.evaluations.close()
+        self.checkpoints.final(self.replay)
+        for actor in self.actors:
+            actor.close()
+
+
 def run_single_process(cfg: Config) -> int:
     run_dir = cfg.run_dir
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
@@ -60,66 +154,20 @@ def run_single_process(cfg: Config) -> int:
     print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), "
           f"{cfg.total_steps} env steps, single process)", flush=True)
     stop = StopFlag().install_signal_handlers()
-    spec = EnvSpec.of(cfg.env)
     try:
-        replay, snap = open_replay(cfg, spec)
-    except snapshot.SnapshotError as e:
+        run = SingleProcessRun(cfg)
+    except ResumeError as e:
         print(f"silcr train: error: cannot resume: {e}", file=sys.stderr)
         return 2
-    board = InProcessWeights()
-    try:
-        learner = Learner(cfg, spec, board)
-    except CheckpointError as e:
-        print(f"silcr train: error: cannot resume: {e}", file=sys.stderr)
-        return 2
-    learner.start()  # the first weights are on the board before any actor acts
-    # A hard kill leaves the two checkpoints at different moments: the limiter takes the learner's count.
-    replay.take_learner_count(learner.books.incarnation, learner.books.updates)
-    actor_cfg = cfg
-    if replay.transitions_received:  # resumed actors must not replay the episodes of the first start
-        actor_cfg = Config(**cfg.to_dict() | {"seed": seeds.resumed(cfg.seed, replay.transitions_received)})
-    actors = [Actor(actor_cfg, spec, i, InProcessEpisodeWriter(replay),
-                    board.client(policy_factory(spec),
-                                 random_initial_weights(actor_cfg, spec, seeds.actor(actor_cfg.seed, i))()))
-              for i in range(cfg.actors)]
-    stream = InProcessBatchStream(replay, learner.sample_request(), stop)
-    checkpoints = snapshot.PeriodicCheckpoints(checkpoint_path(cfg), cfg.buffer_checkpoint_interval)
-    checkpoints.restore_parts(snap, replay)
-    polled = [0] * len(actors)
-    finished = False
-    show = Every(cfg.stats_interval)
     with TrainingDisplay(cfg.total_steps) as display:
-        while not stop.is_set():
-            collecting = replay.transitions_received < cfg.total_steps
-            if collecting:
-                for i, actor in enumerate(actors):
-                    actor.step()
-                    if actor.steps - polled[i] >= cfg.weights_poll_steps:
-                        polled[i] = actor.steps
-                        actor.weights.update()
-            for batch in stream.due():
-                learner.step(batch)
-            learner.see(stream.last_meta)
-            learner.poll()
-            if learner.done(starved=not collecting):
-                finished = True
-                break
-            now = time.monotonic()
-            checkpoints.maybe(replay, now)
-            if show.due(now):
-                stats = learner.stats()
-                learner.record_scalars(stats)
-                display.show(replay.transitions_received, stats)
-        display.show(replay.transitions_received, learner.stats())
-    # Ctrl-C from here on would leave half-written checkpoints behind the atomic renames: finish first.
+        # Ctrl-C once `run` returns would leave half-written checkpoints behind the atomic renames: it
+        # settles the learner before returning, and the rest finishes with Ctrl-C ignored.
+        finished = run.run(stop, display)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    learner.finish(finished)
-    checkpoints.final(replay)
-    for actor in actors:
-        actor.close()
+    run.close()
     if finished:
         print(done_message(run_dir))
         return 0
-    print(f"silcr train: stopped ({stop.reason}) at {learner.books.updates} updates; checkpoints in {run_dir / 'checkpoints'}",
-          file=sys.stderr)
+    print(f"silcr train: stopped ({stop.reason}) at {run.learner.books.updates} updates; checkpoints in "
+          f"{run_dir / 'checkpoints'}", file=sys.stderr)
     return 130

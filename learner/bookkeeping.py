@@ -106,12 +106,6 @@ class Bookkeeping:
 
     def note_rows(self, reply: P.BatchReply) -> None:
         """How old the rows of a reply are: the policy lag of its D_O rows, the age of its D_E rows."""
-        n, size = int(reply.meta["batches"]), int(reply.meta["batch_size"])
-        online = int(reply.meta.get("online_rows", size))  # rows of each batch from D_O; the rest are D_E's
-        if (online < size) != self.algo.mixes_expert:  # a buffer too old to name its algorithm
-            raise BufferMismatch(f"--algo {self.algo.name}: the buffer service "
-                                 f"{'mixes D_E rows into' if online < size else 'sends no D_E rows in'} its batches; "
-                                 f"it runs another --algo (start both with the same --algo)")
         self.ages.note(reply, self.policy_version)
 
     # -- schedules -------------------------------------------------------------------
@@ -126,13 +120,12 @@ class Bookkeeping:
             self.checkpoint()
             self.next_checkpoint = (self.updates // self.cfg.checkpoint_interval + 1) * self.cfg.checkpoint_interval
 
-    def weights(self) -> P.Weights:
-        return self.update.weights(self.policy_version, self.incarnation, time.time())
+    def weights(self, wire_dtype: str = "float32") -> P.Weights:
+        """The actor's weights now; `wire_dtype`: how they travel (the learner evaluates its own float32 ones)."""
+        return self.update.weights(self.policy_version, self.incarnation, time.time(), wire_dtype)
 
     def publish_weights(self, final: bool = False) -> None:
-        weights = self.weights()
-        weights.wire_dtype = self.cfg.weights_dtype  # how they travel; the learner evaluates its own float32 ones
-        self.weights_server.publish(weights, final=final)
+        self.weights_server.publish(self.weights(self.cfg.weights_dtype), final=final)
 
     def start(self) -> None:
         """Publish the first weights and, on a fresh start, evaluate the untrained policy (every curve's baseline)."""
@@ -155,8 +148,17 @@ class Bookkeeping:
         """The budget is spent: every step collected and trained on, or nothing more to be had (`starved`)."""
         return self.env_steps >= self.cfg.total_steps and (self.updates >= self.target_updates() or starved)
 
-    def finish(self, finished: bool) -> None:
-        """Last weights and evaluation if the run finished, a checkpoint either way, then close the records."""
+    def finish(self, finished: bool) -> bool:
+        """`settle`, then close the records; whether the final checkpoint was written."""
+        try:
+            return self.settle(finished)
+        finally:
+            self.evaluations.close()
+
+    def settle(self, finished: bool) -> bool:
+        """Last weights and evaluation if the budget is spent, a checkpoint either way; the records stay open,
+        so a larger budget can go on from here (the Python API's second `learn`). Whether the checkpoint was
+        written."""
         if finished:
             self.policy_version += 1
             self.publish_weights(final=True)
@@ -168,7 +170,8 @@ class Bookkeeping:
         if not self.checkpoint():
             log.error("the final checkpoint could not be written (%d checkpoint(s) failed): --resume would continue "
                       "from the last one that was", self.checkpoints.failed)
-        self.evaluations.close()
+            return False
+        return True
 
     # -- records ---------------------------------------------------------------------
     def evaluate(self) -> None:

@@ -35,6 +35,7 @@ class Evaluations:
         self.evals = 0
         self.last_eval_return: float | None = None
         self.last_eval_updates = -1  # the update count the last evaluation saw (not checkpointed)
+        self.last_row: dict[str, Any] = {}  # the progress row the last evaluation wrote
         run_dir.mkdir(parents=True, exist_ok=True)
         self.progress = ProgressLog(run_dir, resume=resumed)
 
@@ -59,7 +60,7 @@ class Evaluations:
         self.last_eval_return = mean
         self.last_eval_updates = updates
         losses = update_stats
-        self.progress.row(row | {
+        self.last_row = row | {
             "eval_return": mean,
             "eval_return_std": std,
             "eval_length": length,
@@ -69,7 +70,8 @@ class Evaluations:
             **{k: buffer_meta.get(k) for k in EXPERT_COLUMNS},
             "eval_success": "" if success is None else success,
             "q_target_clipped": losses.get("q_target_clipped", float("nan")),
-        })
+        }
+        self.progress.row(self.last_row)
         log.info("eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f%s, %.1fs)",
                  row["env_steps"], updates, mean, std, length,
                  "" if success is None else f", goal reached in {success:.0%}", time.monotonic() - t0)

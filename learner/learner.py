@@ -27,9 +27,9 @@ class Learner:
     def step(self, reply: P.BatchReply) -> None:
         """Train on one `ok` reply (one update per batch), then publish weights and checkpoint when due."""
         self.books.see(reply.meta)
-        self.books.note_rows(reply)
         t0 = time.monotonic()
-        n = self.update.train(reply, self.books.updates)
+        n = self.update.train(reply, self.books.updates)  # checks the reply is what this learner's --algo needs
+        self.books.note_rows(reply)
         self.books.counted(n, time.monotonic() - t0)
 
     # The rest is the bookkeeping's, named here for the loops that drive a learner.
@@ -45,8 +45,11 @@ class Learner:
     def done(self, starved: bool) -> bool:
         return self.books.done(starved)
 
-    def finish(self, finished: bool) -> None:
-        self.books.finish(finished)
+    def finish(self, finished: bool) -> bool:
+        return self.books.finish(finished)
+
+    def settle(self, finished: bool) -> bool:
+        return self.books.settle(finished)
 
     def stats(self) -> dict[str, Any]:
         return self.books.stats()

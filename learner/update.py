@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from silcr import openmp_wait
+from silcr.process_env import openmp_wait
 from silcr.common import protocol as P
 from silcr.common.algorithms import LABEL_MAX, algorithm
 from silcr.common.config import Config
@@ -134,6 +134,11 @@ class Update:
         if self.gasil is not None and reply.disc is None:
             raise BufferMismatch("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
                                  "or predates GASIL (start it with --algo gasil)")
+        online = int(reply.meta.get("online_rows", size))  # rows of each batch from D_O; the rest are D_E's
+        if (online < size) != algorithm(self.cfg.algo).mixes_expert:  # a buffer too old to name its algorithm
+            raise BufferMismatch(f"--algo {self.cfg.algo}: the buffer service "
+                                 f"{'mixes D_E rows into' if online < size else 'sends no D_E rows in'} its batches; "
+                                 f"it runs another --algo (start both with the same --algo)")
         if reply.batch.action_kind != self.spec.action_kind:
             raise BufferMismatch(f"the buffer service sent {reply.batch.action_kind} actions; this learner's env "
                                  f"{self.spec.env_id} has {self.spec.action_kind} ones (it serves another --env)")
@@ -172,9 +177,9 @@ class Update:
     def stat_names(self) -> list[str]:
         return [*self._last, "q_bound_exceeded"] if self._last else []
 
-    def weights(self, version: int, incarnation: int, sent_at: float) -> P.Weights:
+    def weights(self, version: int, incarnation: int, sent_at: float, wire_dtype: str = "float32") -> P.Weights:
         return P.Weights(version, self.sac.actor_arrays(), self.sac.arch(), sent_at=sent_at, incarnation=incarnation,
-                         action_kind=self.spec.action_kind)
+                         action_kind=self.spec.action_kind, wire_dtype=wire_dtype)
 
     # -- checkpoints -------------------------------------------------------------------
     def state(self) -> dict[str, Any]:

@@ -41,7 +41,7 @@ class _Parser(argparse.ArgumentParser):
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
     parser = _Parser(prog="silcr", description="Distributed SILCR: self-imitation learning with constant reward.")
-    from silcr import __version__
+    from silcr.version import __version__
 
     parser.add_argument("--version", action="version", version=f"silcr {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)
@@ -171,7 +171,7 @@ def _main(argv: list[str] | None) -> int:
 
         return plot_command(args, subs[role])
     if role in ("eval", "demos"):
-        from silcr import policy_commands
+        import silcr.policy_commands as policy_commands
 
         return (policy_commands.eval_command if role == "eval" else policy_commands.demos_command)(args, subs[role])
     if role == "sweep":

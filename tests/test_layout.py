@@ -198,3 +198,18 @@ def test_no_class_outside_the_tests_is_longer_than_180_lines():
             for name, path in _modules().items() for node in ast.walk(ast.parse(path.read_text()))
             if isinstance(node, ast.ClassDef) and node.end_lineno - node.lineno + 1 > MAX_CLASS_LINES]
     assert not long, f"classes over {MAX_CLASS_LINES} lines: {long}"
+
+
+def test_the_readmes_python_quick_start_runs_as_written_where_silcr_is_installed(installed, tmp_path):
+    """The README's Python block, verbatim, in a fresh venv with silcr installed from a wheel (issue 38)."""
+    readme = (REPO / "README.md").read_text()
+    section = readme.split("## Python quick start", 1)[1]
+    code = section.split("```python\n", 1)[1].split("```", 1)[0]
+    assert "from silcr import SILCR" in code and "SILCR.load(" in code and ".predict(" in code
+    script = tmp_path / "quick_start.py"
+    script.write_text(code + "\nprint('ACTION', action)\n")
+    r = subprocess.run([str(installed["bin"] / "python"), str(script)], capture_output=True, text=True, cwd=tmp_path,
+                       env=installed["env"], timeout=600)
+    assert r.returncode == 0, r.stdout + r.stderr
+    assert "ACTION [" in r.stdout and (tmp_path / "pendulum.silcr").is_file()
+    assert not (REPO / "pendulum.silcr").exists()

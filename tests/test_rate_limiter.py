@@ -72,3 +72,35 @@ def test_never_both_blocked(spi, min_size, tol, ops):
         else:
             lim.record_sample(min(n, lim.available()))
         assert not (lim.inserts_paused() and lim.available() == 0)
+
+
+def test_over_the_budgets_last_stretch_actors_keep_pace_instead_of_running_a_window_ahead():
+    """Issue 41: with a budget, the last 2 * tolerance / spi inserts pause the actors whenever they are ahead of the
+    ratio at all (no hysteresis), so the learner's last updates never wait out a whole window on static tables."""
+    lim = SamplesPerInsertLimiter(1.0, min_size_to_sample=10, tolerance=100, final_inserts=1000)
+    lim.record_insert(700)  # mid-run: a window ahead before pausing, then paused until back at the centre
+    lim.record_sample(700 - 10 - 100)
+    assert not lim.at_the_end() and not lim.inserts_paused()
+    lim.record_insert(1)
+    assert lim.inserts_paused()
+    lim.record_sample(50)
+    assert lim.inserts_paused()  # hysteresis
+    lim.record_insert(100)  # 801 inserts: inside the last 200 of the budget
+    assert lim.at_the_end() and lim.inserts_paused()
+    while lim.error > lim.centre:  # the learner catches up ...
+        assert lim.inserts_paused()
+        lim.record_sample(1)
+    assert not lim.inserts_paused()  # ... and the actors resume at once, one episode at a time
+    lim.record_insert(5)
+    assert lim.inserts_paused()
+    lim.record_sample(5)
+    assert not lim.inserts_paused()
+    lim.record_insert(300)  # past the budget (the learner still has updates due): still in step
+    assert lim.at_the_end() and lim.inserts_paused()
+    # without a budget the hysteresis holds to the end
+    free = SamplesPerInsertLimiter(1.0, min_size_to_sample=10, tolerance=100)
+    free.record_insert(1000)
+    free.record_sample(1000 - 10 - 101)
+    assert free.inserts_paused()
+    free.record_sample(50)
+    assert free.inserts_paused()

@@ -263,3 +263,26 @@ def test_router_port_in_use_is_a_clear_error(tmp_path):
         )
     assert r.returncode == 2 and "already in use" in r.stderr and "Traceback" not in r.stderr
     assert list(tmp_path.iterdir()) == []  # refused before it wrote a run directory
+
+
+@pytest.mark.slow
+def test_a_distributed_runs_last_updates_train_on_data_that_still_arrives(tmp_path):
+    """Issue 41: the actors keep pace with the learner over the budget's last stretch, so the updates made after
+    the last episode arrived are a small part of --spi-tolerance (they were up to all of it: the actors waited
+    out the hysteresis while the learner caught up on tables that no longer changed), and the final row's
+    updates match the budget at --samples-per-insert within the tolerance."""
+    from tests.helpers import train_to_the_end
+
+    tolerance, total, starts = 1000, 6000, 500
+    rows, procs = train_to_the_end(
+        tmp_path, "end", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--env", "MiniGrid-Empty-5x5-v0",
+        "--absorbing-terminal", "--actors", "2", "--hidden", "32", "32", "--learning-starts", str(starts),
+        "--expert-capacity", "300", "--total-steps", str(total), "--eval-interval", "2000", "--eval-episodes", "2",
+        "--spi-tolerance", str(tolerance), "--batch-size", "32")
+    log = (tmp_path / "runs" / "end" / "logs" / "buffer.log").read_text()
+    served, after = map(int, re.search(r"(\d+) batches served, (\d+) of them after the last episode arrived", log).groups())
+    assert after <= tolerance // 4, f"{after} of {served} updates came after the last episode"
+    updates = int(rows[-1]["updates"])
+    assert abs(updates - total * 1.0) <= tolerance
+    assert 0 <= served - updates <= 4 * 2  # the batches in flight when the learner finished (requests of 4, 2 in flight)
+    assert procs.orphans == []

@@ -1,0 +1,185 @@
+"""How a Python API model trains: in this process (`actors=0`) or as the distributed system (`actors=N`).
+
+Both are the command line's own launchers, driven from Python:
+
+* `InProcessTraining` holds a `deploy.single_process.SingleProcessRun` from the model's first
+  `learn` to its `close`, so a second `learn` goes on with the same tables and counters. It
+  holds the run directory's lock meanwhile, writes the components' logs where `silcr train
+  --single-process` does, and turns Ctrl-C into a clean stop followed by KeyboardInterrupt.
+* `DistributedTraining` is `silcr train`'s path (`deploy.launch.train`: a router, the buffer
+  service, the learner and the actors as processes, all stopped when it returns, on an
+  exception and on Ctrl-C). A second `learn` resumes from the checkpoints the first left.
+  The learner writes progress.csv in its own process; a callback reads its rows as they come.
+"""
+
+from __future__ import annotations
+
+import _thread
+import contextlib
+import csv
+import io
+import logging
+import signal
+import threading
+from pathlib import Path
+from typing import Any, Callable
+
+from silcr.common import protocol as P
+from silcr.common.config import Config, ConfigError
+
+#: The components' loggers, written to <run dir>/logs/single-process.log while an actors=0 model learns.
+COMPONENT_LOGGERS = ("train", "learner", "buffer", "actor", "clients", "protocol", "mujoco")
+
+RowCallback = Callable[[dict[str, Any]], bool]
+
+
+class InProcessTraining:
+    def __init__(self, cfg: Config) -> None:
+        from silcr.common.run_lock import RunInUse, hold
+        from silcr.deploy.single_process import ResumeError, SingleProcessRun
+
+        self.cfg = cfg
+        self._held = contextlib.ExitStack()
+        try:
+            self._held.enter_context(hold(cfg.run_dir))
+        except RunInUse as e:
+            raise RuntimeError(str(e)) from None
+        try:
+            (cfg.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+            with self.component_logs():
+                self.run = SingleProcessRun(cfg)
+        except ResumeError as e:
+            self._held.close()
+            raise ValueError(f"cannot resume: {e}") from None
+        except BaseException:
+            self._held.close()
+            raise
+
+    @property
+    def env_steps(self) -> int:
+        return self.run.replay.transitions_received
+
+    def weights(self) -> P.Weights:
+        return self.run.learner.books.weights()
+
+    def learn(self, on_row: RowCallback | None, progress_bar: bool) -> None:
+        """Train to `cfg.total_steps`; KeyboardInterrupt after a clean stop if Ctrl-C came."""
+        from silcr.common.lifecycle import StopFlag
+        from silcr.deploy.console import TrainingDisplay
+
+        self.cfg.save(self.cfg.run_dir / "config.toml")
+        stop = StopFlag()
+        interrupted = threading.Event()
+
+        def on_sigint(signum: int, frame: object) -> None:
+            interrupted.set()
+            stop.set("SIGINT")
+
+        main = threading.current_thread() is threading.main_thread()
+        previous = signal.signal(signal.SIGINT, on_sigint) if main else None
+        try:
+            display = TrainingDisplay(self.cfg.total_steps) if progress_bar else contextlib.nullcontext()
+            with self.component_logs(), display:
+                self.run.run(stop, display if progress_bar else None, on_row)
+        finally:
+            if main:
+                signal.signal(signal.SIGINT, previous)
+        if interrupted.is_set():
+            raise KeyboardInterrupt
+
+    def checkpoint(self) -> None:
+        """Both checkpoints, now (for a model file with its training state)."""
+        from silcr.buffer_service import snapshot
+        from silcr.buffer_service.replay import checkpoint_path
+
+        with self.component_logs():
+            if not self.run.learner.books.checkpoint():
+                raise OSError(f"the learner checkpoint could not be written to {self.cfg.run_dir / 'checkpoints'}")
+            snapshot.write(checkpoint_path(self.cfg), snapshot.take(self.run.replay))
+
+    def close(self) -> None:
+        """The last checkpoints written, the records closed, the run directory released."""
+        try:
+            with self.component_logs():
+                self.run.close()
+        finally:
+            self._held.close()
+
+    @contextlib.contextmanager
+    def component_logs(self):
+        """The components' INFO logs to <run dir>/logs/single-process.log, as `silcr train --single-process`
+        writes them, without touching the caller's own logging."""
+        handler = logging.FileHandler(self.cfg.run_dir / "logs" / "single-process.log")
+        handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s", "%H:%M:%S"))
+        loggers = [logging.getLogger(name) for name in COMPONENT_LOGGERS]
+        before = [(lg.level, lg.propagate) for lg in loggers]
+        for lg in loggers:
+            lg.addHandler(handler)
+            lg.setLevel(logging.INFO)
+            lg.propagate = False
+        try:
+            yield
+        finally:
+            for lg, (level, propagate) in zip(loggers, before):
+                lg.removeHandler(handler)
+                lg.setLevel(level)
+                lg.propagate = propagate
+            handler.close()
+
+
+class DistributedTraining:
+    def __init__(self, cfg: Config) -> None:
+        self.cfg = cfg
+
+    def learn(self, on_row: RowCallback | None, progress_bar: bool) -> tuple[P.Weights, int]:
+        """Run `silcr train`'s path to `cfg.total_steps`; the learner's final weights and env steps. A callback's False stops
+        the run through the launcher's Ctrl-C path (every component stops cleanly); a real Ctrl-C raises
+        KeyboardInterrupt once they have."""
+        from silcr.common.run_lock import RunInUse
+        from silcr.deploy.launch import train
+        from silcr.learner.checkpoint import load_checkpoint
+        from silcr.learner.evaluate import weights_from_checkpoint
+
+        progress = self.cfg.run_dir / "progress.csv"
+        stopped, done = threading.Event(), threading.Event()
+
+        def follow() -> None:
+            seen = len(_rows(progress))
+            while not done.wait(0.5):
+                rows = _rows(progress)
+                for row in rows[seen:]:
+                    if on_row(row) is False and not stopped.is_set():
+                        stopped.set()
+                        _thread.interrupt_main()
+                seen = len(rows)
+
+        watcher = threading.Thread(target=follow, daemon=True) if on_row is not None else None
+        if watcher is not None:
+            watcher.start()
+        quiet = contextlib.nullcontext() if progress_bar else contextlib.redirect_stdout(io.StringIO())
+        try:
+            with quiet:
+                code = train(self.cfg)
+        except (RunInUse, ConfigError) as e:
+            raise RuntimeError(str(e)) from None
+        except KeyboardInterrupt:  # the callback's stop came before the launcher took Ctrl-C over
+            code = 130
+        finally:
+            done.set()
+            if watcher is not None:
+                watcher.join()
+        if code == 130 and not stopped.is_set():
+            raise KeyboardInterrupt
+        if code not in (0, 130):
+            raise RuntimeError(f"the distributed run ended with exit code {code}; the components' logs are in "
+                               f"{self.cfg.run_dir / 'logs'}")
+        final = load_checkpoint(self.cfg.run_dir / "checkpoints" / "learner.pt")
+        return weights_from_checkpoint(final)[0], int(final["counters"]["env_steps"])
+
+
+def _rows(path: Path) -> list[dict[str, str]]:
+    try:
+        with open(path, newline="") as f:
+            return list(csv.DictReader(f))
+    except (OSError, csv.Error):
+        return []
