@@ -100,6 +100,10 @@ class NumpyPolicy:
     def deterministic(self, obs: np.ndarray) -> np.ndarray:
         return np.tanh(self._heads(obs)[0])
 
+    def outputs(self, obs: np.ndarray) -> np.ndarray:
+        """The heads' raw values (means and log-stds) before any squashing or clipping hides a NaN or an inf."""
+        return _trunk_forward(self.layers, obs) @ self.head_w + self.head_b
+
 
 class CategoricalPolicy:
     """The categorical policy over `n_actions` action indices (the learner's `CategoricalActor`).
@@ -130,6 +134,9 @@ class CategoricalPolicy:
     def deterministic(self, obs: np.ndarray) -> np.ndarray:
         """The most likely action."""
         return self.logits(obs).argmax(-1)[..., None]
+
+    def outputs(self, obs: np.ndarray) -> np.ndarray:
+        return self.logits(obs)
 
 
 Policy = NumpyPolicy | CategoricalPolicy
@@ -168,3 +175,22 @@ def initial_weights(obs_dim: int, act_dim: int, hidden: list[int], seed: int, n_
     linear("mean", hidden[-1], act_dim)
     linear("log_std", hidden[-1], act_dim)
     return Weights(-1, params, {"obs_dim": obs_dim, "act_dim": act_dim, "hidden": list(hidden)})
+
+
+def probe_observations(obs_dim: int) -> np.ndarray:
+    """Observations every new policy is tried on before an actor acts with it: zeros and wide normal draws."""
+    rng = np.random.default_rng(0)
+    return np.concatenate([np.zeros((1, obs_dim)), 10.0 * rng.standard_normal((7, obs_dim))]).astype(np.float32)
+
+
+def usable_policy(weights: Weights, spec) -> Policy:
+    """`policy_for`, refused (ProtocolError "non_finite_output") when its outputs on `probe_observations` are NaN or
+    infinite: weights finite to the wire's check can still overflow float32 in a forward pass (values near 3e38),
+    and an actor acting with them would produce NaN actions, hence episodes the buffer must refuse."""
+    policy = policy_for(weights, spec)
+    with np.errstate(all="ignore"):
+        out = policy.outputs(probe_observations(spec.obs_dim))
+    if not np.isfinite(out).all():
+        raise ProtocolError("non_finite_output", f"weights version {weights.version} give NaN or infinite outputs (a "
+                                                 f"forward pass overflows); the actor keeps its last good policy")
+    return policy

@@ -23,7 +23,7 @@ from silcr.common.envs import EnvSpec, make_env
 from silcr.common.lifecycle import StopFlag
 from silcr.common.role_session import role_session
 
-from .policy import Policy, initial_weights, policy_for
+from .policy import Policy, initial_weights, usable_policy
 
 log = logging.getLogger("actor")
 # A paused actor wakes this often (unless the buffer lets it go on first) to take newer weights
@@ -42,8 +42,9 @@ class _Rollout:
 
 
 def policy_factory(spec: EnvSpec):
-    """Weights -> the actors' NumPy policy for `spec` (raises ProtocolError for weights that do not fit)."""
-    return lambda w: policy_for(w, spec)
+    """Weights -> the actors' NumPy policy for `spec` (raises ProtocolError for weights that do not fit, or whose
+    forward pass overflows: `policy.usable_policy`)."""
+    return lambda w: usable_policy(w, spec)
 
 
 def random_initial_weights(cfg: Config, spec: EnvSpec, seed: int):
@@ -73,8 +74,14 @@ class Actor:
 
     def step(self) -> bool:
         """One step of every env; finished episodes are written. False if a write gave up (stopping)."""
-        policy = self.weights.policy
-        acts = policy.sample(np.stack([r.obs[-1] for r in self.rollouts]), self.rng)
+        obs = np.stack([r.obs[-1] for r in self.rollouts])
+        with np.errstate(over="ignore", invalid="ignore"):
+            acts = self.weights.policy.sample(obs, self.rng)
+        if not np.isfinite(acts).all():
+            # Weights that passed their probe but overflow on these observations: never act with NaN (the
+            # episode would be refused whole); back to the last good policy, counted (`weights_rejections`).
+            self.weights.fall_back("non_finite_actions")
+            acts = self.weights.policy.sample(obs, self.rng)
         env_acts = self.spec.to_env_action(acts)
         for j, (env, ro) in enumerate(zip(self.envs, self.rollouts)):
             obs, reward, terminated, truncated, _ = env.step(env_acts[j])

@@ -18,7 +18,7 @@ from silcr.common.clients import Presence, SampleQuery, Throttle, ZenohReplaySer
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.inbox import Inbox
-from silcr.common.lifecycle import EXIT_CANNOT_START, StopFlag
+from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag
 from silcr.common.resources import release_free_memory
 from silcr.common.role_session import role_session
 from silcr.common.schedule import Every
@@ -77,12 +77,12 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
                     "episodes_dropped": inbox.dropped_at_close, "episode_bytes_received": server.episode_bytes_received,
                 } | checkpoints.stats() | restored)
         server.close()
-    checkpoints.final(replay)
+    written = checkpoints.final(replay)
     log.info("buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d missing, %d batches served, "
              "%d of them after the last episode arrived", stop.reason, replay.intake.episodes_received,
              replay.transitions_received, sum(replay.intake.rejections.values()), replay.intake.episodes_missing,
              replay.sampler.batches_served, replay.stats()["updates_since_last_episode"])
-    return 0
+    return 0 if written else EXIT_STALE_CHECKPOINT
 
 
 _REFUSAL_LOGS: dict[str, Every] = {}  # one line per reason every 10 s: an outside client's flood must not flood the log

@@ -314,22 +314,27 @@ class PeriodicCheckpoints:
         if self._every.due(now):
             self.writer.submit(take(replay, **self.parts))
 
-    def final(self, replay: Checkpointed) -> None:
+    def final(self, replay: Checkpointed) -> bool:
+        """The last checkpoint, on the way out; whether the file on disk now holds this state."""
         self.writer.join()
         if self._restored == replay.activity() and self.writer.written == 0:
             # Nothing came in since the checkpoint it restored (another component could not start,
             # say): leave that file as it is rather than rewrite it.
             log.info("nothing changed since the checkpoint it resumed from; %s left as it is", self.writer.path)
-            return
+            return True
         t0 = time.monotonic()
+        written = True
         try:
             write(self.writer.path, take(replay, **self.parts))
             log.info("checkpoint of %d transitions written to %s in %.1fs", replay.transitions_received,
                      self.writer.path, time.monotonic() - t0)
         except OSError as e:
-            log.error("final checkpoint failed: %s", e)
+            log.error("the final checkpoint could not be written (%s): %s is stale; --resume would continue from it",
+                      e, self.writer.path)
+            written = False
         if self.writer.failed:
             log.error("%d periodic checkpoints failed; last error: %s", self.writer.failed, self.writer.last_error)
+        return written
 
     def stats(self) -> dict[str, Any]:
         w = self.writer

@@ -36,6 +36,7 @@ import zenoh
 from silcr.common import protocol as P
 from silcr.common.inbox import Inbox
 from silcr.common.lifecycle import StopFlag
+from silcr.common.schedule import Every
 
 log = logging.getLogger("clients")
 
@@ -46,7 +47,11 @@ QUERY_TIMEOUT_S = 10.0
 class Replay(Protocol):
     """What the in-process clients need of the buffer service's state."""
 
+    limits: P.EpisodeLimits
+
     def store(self, ep: P.Episode) -> None: ...
+
+    def reject(self, e: P.ProtocolError) -> None: ...
 
     def sample(self, request: P.SampleRequest, keep_ratio: bool) -> P.BatchReply: ...
 
@@ -144,6 +149,13 @@ class InProcessEpisodeWriter(EpisodeWriter):
         self._replay = replay
 
     def write(self, ep: P.Episode) -> bool:
+        """Store `ep` after the checks a message gets on arrival (`validate_episode`): a NaN in an episode is
+        refused and counted here as the buffer service refuses it from the wire."""
+        try:
+            P.validate_episode(ep, self._replay.limits)
+        except P.ProtocolError as e:
+            self._replay.reject(e)
+            return True
         self._replay.store(ep)
         self.written += 1
         return True
@@ -411,19 +423,30 @@ class WeightsClient(Generic[PolicyT]):
         self._make_policy = make_policy
         self.weights = initial
         self.policy: PolicyT = make_policy(initial)
+        self._previous: tuple[P.Weights, PolicyT] | None = None  # the last good policy before the current one
+        self._refused: set[tuple[int, int]] = set()  # (incarnation, version) of weights found unusable in use
         self.updates = 0
         self.rejections: collections.Counter[str] = collections.Counter()  # weights not taken, by reason
         self.latency_ms: collections.deque[float] = collections.deque(maxlen=100)
+        self._warned: dict[str, Every] = {}  # one warning per reason every 10 s, with the count so far
+
+    def _warn(self, reason: str, message: str) -> None:
+        """A rejection's warning, grouped: a flood of bad weights (hundreds a second) logs one line per reason
+        every 10 s with the count so far, as the buffer does for sample requests; every one is counted."""
+        if self._warned.setdefault(reason, Every(10.0)).due():
+            log.warning("%s (%d rejected for %s so far)", message, self.rejections[reason], reason)
 
     def _offer(self, new: P.Weights) -> bool:
-        if not new.supersedes(self.weights):
+        if not new.supersedes(self.weights) or (new.incarnation, new.version) in self._refused:
             return False
         try:
             policy = self._make_policy(new)
         except (P.ProtocolError, ValueError) as e:
-            self.rejections[getattr(e, "reason", "unusable")] += 1
-            log.warning("ignoring unusable weights (version %d): %s", new.version, e)
+            reason = getattr(e, "reason", "unusable")
+            self.rejections[reason] += 1
+            self._warn(reason, f"ignoring unusable weights (version {new.version}): {e}")
             return False
+        self._previous = (self.weights, self.policy)
         self.weights, self.policy = new, policy
         self.updates += 1
         if new.sent_at:
@@ -444,7 +467,18 @@ class WeightsClient(Generic[PolicyT]):
 
     def _malformed(self, e: P.ProtocolError) -> None:
         self.rejections[e.reason] += 1
-        log.warning("ignoring malformed weights (%s): %s", e.reason, e)
+        self._warn(e.reason, f"ignoring malformed weights ({e.reason}): {e}")
+
+    def fall_back(self, reason: str) -> None:
+        """The current weights turned out unusable in use (NaN actions): back to the previous policy, the current
+        ones refused from now on, counted under `reason`."""
+        self.rejections[reason] += 1
+        self._refused.add((self.weights.incarnation, self.weights.version))
+        self._warn(reason, f"weights version {self.weights.version} gave NaN or infinite actions; acting with version "
+                           f"{self._previous[0].version if self._previous else '?'} again")
+        if self._previous is not None:
+            self.weights, self.policy = self._previous
+            self._previous = None
 
     def stats(self) -> dict:
         return {"policy_version": self.version, "weights_rejected": self.rejected,

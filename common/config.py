@@ -14,7 +14,7 @@ import time
 import tomllib
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import Any, Mapping
+from typing import Any, Callable, Mapping
 
 import tomli_w
 
@@ -299,11 +299,16 @@ def load_environ(environ: Mapping[str, str], role: str) -> dict[str, Any]:
 
 
 def resolve(args: argparse.Namespace, role: str, environ: Mapping[str, str] | None = None) -> Config:
-    """Defaults < TOML file < SILCR_* environment variables < command line, then validate."""
+    """Defaults < TOML file < SILCR_* environment variables < command line, then validate: each source's values
+    in their ranges (a bad value is refused even where a later source overrides it), then the result."""
     values: dict[str, Any] = {}
     if getattr(args, "config", None):
-        values.update(load_toml(args.config, role))
-    values.update(load_environ(os.environ if environ is None else environ, role))
+        from_file = load_toml(args.config, role)
+        check_values(from_file, lambda name: f"{args.config}: {name}")
+        values.update(from_file)
+    from_environ = load_environ(os.environ if environ is None else environ, role)
+    check_values(from_environ, lambda name: ENV_PREFIX + name.upper())
+    values.update(from_environ)
     for name in FIELDS:
         if name in vars(args):
             values[name] = getattr(args, name)
@@ -341,54 +346,54 @@ def actor_zenoh_mode(cfg: Config) -> str:
     return "peer" if cfg.actors <= PEER_ACTORS_MAX else "client"
 
 
-def validate(cfg: Config, role: str) -> None:
-    def positive(name: str, minimum: float = 1) -> None:
-        if getattr(cfg, name) < minimum:
-            raise ConfigError(option_name(name), f"must be >= {minimum}, got {getattr(cfg, name)}")
+#: The range of each option on its own (whatever the others are): checked for every source of values, so a
+#: bad value in a --config file is refused even when the command line overrides it (issue 42).
+_AT_LEAST = {name: 1 for name in ("online_capacity", "expert_capacity", "total_steps", "weights_interval",
+                                  "eval_interval", "checkpoint_interval", "actors", "envs_per_actor",
+                                  "batches_per_request", "requests_in_flight", "weights_poll_steps", "disc_batch_size",
+                                  "disc_interval", "recent_window", "spi_tolerance")} | {
+    "batch_size": 2, "eval_episodes": 0, "disc_warmup": 0, "learning_starts": 0, "actor_id": -1, "torch_threads": 0,
+    "max_restarts": 0, "grad_clip": 0, "gasil_alpha": 0, "disc_grad_penalty": 0, "weights_fanout_mb_s": 0,
+    "buffer_checkpoint_interval": 0}
+_AT_MOST = {"batches_per_request": 64}
+_ABOVE_ZERO = ("samples_per_insert", "lr", "init_alpha", "disc_lr", "stats_interval")
+_ZERO_TO_ONE = ("gamma", "tau", "target_entropy_scale")  # (0, 1]
+_LAYERS = ("hidden", "disc_hidden")
 
+
+def value_problem(name: str, value: Any) -> str | None:
+    """What is wrong with `value` for option `name` on its own (None: nothing)."""
+    if name in _AT_LEAST and not value >= _AT_LEAST[name]:  # `not >=`: a NaN is refused too
+        return f"must be >= {_AT_LEAST[name]}, got {value}"
+    if name in _AT_MOST and value > _AT_MOST[name]:
+        return f"must be <= {_AT_MOST[name]}, got {value}"
+    if name in _ABOVE_ZERO and not value > 0:
+        return f"must be > 0, got {value}"
+    if name in _ZERO_TO_ONE and not 0 < value <= 1:
+        return f"must be in (0, 1], got {value}"
+    if name in _LAYERS and (not value or any(h < 1 for h in value)):
+        return f"needs one or more positive layer sizes, got {value}"
+    if name == "run" and value:
+        try:
+            validate_run_name(value)
+        except ValueError as e:
+            return str(e)
+    return None
+
+
+def check_values(values: Mapping[str, Any], label: Callable[[str], str] = option_name) -> None:
+    """Each of `values` (one source: a --config file, the environment, the command line) in its own range;
+    ConfigError naming the first bad one as `label(name)` says (`--tau`, `run.toml: tau`, `SILCR_TAU`)."""
+    for name, value in values.items():
+        problem = value_problem(name, value)
+        if problem is not None:
+            raise ConfigError(label(name), problem)
+
+
+def validate(cfg: Config, role: str) -> None:
     if not cfg.run:
         raise ConfigError("--run", "a run name is required")
-    try:
-        validate_run_name(cfg.run)
-    except ValueError as e:
-        raise ConfigError("--run", str(e)) from None
-    for name in ("online_capacity", "expert_capacity", "total_steps", "weights_interval", "eval_interval",
-                 "checkpoint_interval", "actors", "envs_per_actor", "batches_per_request", "requests_in_flight",
-                 "weights_poll_steps", "disc_batch_size", "disc_interval", "recent_window"):
-        positive(name)
-    positive("batch_size", 2)
-    positive("eval_episodes", 0)
-    positive("disc_warmup", 0)
-    positive("learning_starts", 0)
-    positive("actor_id", -1)
-    positive("torch_threads", 0)
-    positive("max_restarts", 0)
-    positive("spi_tolerance", 1)
-    if cfg.batches_per_request > 64:
-        raise ConfigError("--batches-per-request", f"must be <= 64, got {cfg.batches_per_request}")
-    if not cfg.samples_per_insert > 0:
-        raise ConfigError("--samples-per-insert", f"must be > 0, got {cfg.samples_per_insert}")
-    if not 0 < cfg.gamma <= 1:
-        raise ConfigError("--gamma", f"must be in (0, 1], got {cfg.gamma}")
-    if not 0 < cfg.tau <= 1:
-        raise ConfigError("--tau", f"must be in (0, 1], got {cfg.tau}")
-    for name in ("lr", "init_alpha", "disc_lr"):
-        if not getattr(cfg, name) > 0:
-            raise ConfigError(option_name(name), f"must be > 0, got {getattr(cfg, name)}")
-    if not 0 < cfg.target_entropy_scale <= 1:
-        raise ConfigError("--target-entropy-scale", f"must be in (0, 1], got {cfg.target_entropy_scale}")
-    if cfg.grad_clip < 0:
-        raise ConfigError("--grad-clip", f"must be >= 0, got {cfg.grad_clip}")
-    for name in ("hidden", "disc_hidden"):
-        if not getattr(cfg, name) or any(h < 1 for h in getattr(cfg, name)):
-            raise ConfigError(option_name(name), f"needs one or more positive layer sizes, got {getattr(cfg, name)}")
-    for name in ("gasil_alpha", "disc_grad_penalty", "weights_fanout_mb_s"):
-        if not getattr(cfg, name) >= 0:
-            raise ConfigError(option_name(name), f"must be >= 0, got {getattr(cfg, name)}")
-    if cfg.buffer_checkpoint_interval < 0:
-        raise ConfigError("--buffer-checkpoint-interval", f"must be >= 0, got {cfg.buffer_checkpoint_interval}")
-    if cfg.stats_interval <= 0:
-        raise ConfigError("--stats-interval", f"must be > 0, got {cfg.stats_interval}")
+    check_values(cfg.to_dict())
     algo = algorithms.algorithm(cfg.algo)
     for name in algorithms.ALGORITHM_OPTIONS:
         # An option only other algorithms use does nothing here: say so rather than ignore it.

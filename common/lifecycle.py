@@ -16,6 +16,10 @@ import threading
 #: A component exits with this when it cannot start from its inputs (a corrupt or foreign
 #: checkpoint): restarting it would fail the same way, so `silcr train` does not, and exits 2.
 EXIT_CANNOT_START = 3
+#: A component, or `silcr train`, exits with this when the run ended (finished or stopped) but its last
+#: checkpoint could not be written: the checkpoints on disk are older than the run, and a --resume would
+#: go on from them. The launcher does not restart a component that exits with it (docs/reliability.md).
+EXIT_STALE_CHECKPOINT = 4
 
 
 class StopFlag:

@@ -32,6 +32,18 @@ def done_message(run_dir: Path) -> str:
             f"TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
 
 
+CHECKPOINT_FILES = {"learner": "learner.pt", "buffer": "buffer.ckpt"}
+
+
+def stale_checkpoints_message(run_dir: Path, components: list[str]) -> str:
+    """What `silcr train` says on stderr when a run ended but the final checkpoint of `components` could not be
+    written (it then exits with EXIT_STALE_CHECKPOINT, 4): which files are stale, and what that means."""
+    files = ", ".join(str(run_dir / "checkpoints" / CHECKPOINT_FILES[c]) for c in components)
+    return (f"silcr train: error: the final checkpoint of the {' and the '.join(components)} could not be written "
+            f"(see {run_dir / 'logs'}): {files} {'is' if len(components) == 1 else 'are'} stale, from before the "
+            f"end of the run, and --resume would continue from there; progress.csv holds the whole run")
+
+
 def divergence_warning(learner_stats: dict[str, Any]) -> str:
     """The one line `silcr train` prints when the critics first pass the soft-Q bound."""
     def num(key: str) -> str:

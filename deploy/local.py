@@ -27,9 +27,9 @@ from silcr.common import protocol as P
 from silcr.common import seeds
 from silcr.common.clients import Shutdown
 from silcr.common.config import Config, actor_zenoh_mode
-from silcr.common.lifecycle import EXIT_CANNOT_START, StopFlag, setup_logging
+from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, setup_logging
 from silcr.common.zenoh_session import open_session, session_config
-from silcr.deploy.console import TrainingDisplay, done_message
+from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
 from silcr.deploy.monitor import StatsSnapshot
 
 log = logging.getLogger("train")
@@ -199,6 +199,12 @@ def run_train(cfg: Config) -> int:
         run.stop_all(order)
         signal.signal(signal.SIGINT, previous_int)
         signal.signal(signal.SIGTERM, previous)
+    stale = [name for name in ("learner", "buffer") if name in run.procs
+             and run.procs[name].exitcode == EXIT_STALE_CHECKPOINT]
+    if stale:
+        print(stale_checkpoints_message(run_dir, stale), file=sys.stderr)
+        if code == 0:
+            return EXIT_STALE_CHECKPOINT
     if code == 0:
         print(done_message(run_dir))
     elif code == 1:  # 2 (a component cannot start) has said its one line; 130 is Ctrl-C
@@ -237,7 +243,7 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
             snap = stats.as_dict()
             lr = snap["learner"] or {}
             display.show(max(int(lr.get("env_steps", 0)), int((snap["buffer"] or {}).get("transitions_received", 0))), lr)
-            if run.procs["learner"].exitcode == 0:
+            if run.procs["learner"].exitcode in (0, EXIT_STALE_CHECKPOINT):  # finished (stale: said at the end)
                 return 0
             for name, p in list(run.procs.items()):
                 if p.exitcode is None:
@@ -246,7 +252,7 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     display.stop()
                     print(f"silcr train: error: {_cannot_start(run, name)}", file=sys.stderr)
                     return 2
-                if p.exitcode != 0 and run.restarts.get(name, 0) < cfg.max_restarts:
+                if p.exitcode not in (0, EXIT_STALE_CHECKPOINT) and run.restarts.get(name, 0) < cfg.max_restarts:
                     # Actors hold no state that matters: start a fresh one (new incarnation). The
                     # buffer and the learner come back from their latest checkpoints. The router
                     # holds none: it comes back on the same endpoint, and every session reconnects

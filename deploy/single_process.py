@@ -42,9 +42,9 @@ from silcr.common import seeds
 from silcr.common.clients import InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
-from silcr.common.lifecycle import StopFlag
+from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT, StopFlag
 from silcr.common.schedule import Every
-from silcr.deploy.console import TrainingDisplay, done_message
+from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
 from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.learner import Learner
 
@@ -86,6 +86,7 @@ class SingleProcessRun:
         self.checkpoints = snapshot.PeriodicCheckpoints(checkpoint_path(cfg), cfg.buffer_checkpoint_interval)
         self.checkpoints.restore_parts(snap, self.replay)
         self._polled = [0] * len(self.actors)
+        self.checkpoint_written = True  # the learner's last one (`run` sets it)
         self._reported = 0  # evaluations told to `run`'s callers
 
     def run(self, stop: StopFlag, display: TrainingDisplay | None = None,
@@ -136,12 +137,14 @@ class SingleProcessRun:
         self._reported = evaluations.evals
         return evaluated(evaluations.last_row)
 
-    def close(self) -> None:
-        """Close the learner's records and write the buffer's last checkpoint; the actors' envs close."""
+    def close(self) -> list[str]:
+        """Close the learner's records and write the buffer's last checkpoint; the actors' envs close. The
+        components whose final checkpoint could not be written (stale on disk)."""
         self.learner.books.evaluations.close()
-        self.checkpoints.final(self.replay)
+        buffer_written = self.checkpoints.final(self.replay)
         for actor in self.actors:
             actor.close()
+        return [name for name, ok in (("learner", self.checkpoint_written), ("buffer", buffer_written)) if not ok]
 
 
 def run_single_process(cfg: Config) -> int:
@@ -164,7 +167,11 @@ def run_single_process(cfg: Config) -> int:
         # settles the learner before returning, and the rest finishes with Ctrl-C ignored.
         finished = run.run(stop, display)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
-    run.close()
+    stale = run.close()
+    if stale:
+        print(stale_checkpoints_message(run_dir, stale), file=sys.stderr)
+        if finished:
+            return EXIT_STALE_CHECKPOINT
     if finished:
         print(done_message(run_dir))
         return 0

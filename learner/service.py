@@ -14,7 +14,7 @@ import time
 
 from silcr.common.clients import Shutdown, ZenohBatchStream, ZenohWeightsServer
 from silcr.common.config import Config
-from silcr.common.lifecycle import EXIT_CANNOT_START, StopFlag
+from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag
 from silcr.common.role_session import role_session
 
 from .checkpoint import CheckpointError
@@ -60,7 +60,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
             if lrn.done(starved=stream.rate_limited):
                 finished = True
                 break
-        lrn.finish(finished)
+        written = lrn.finish(finished)
         books = lrn.books
         role.stats.put({"time": time.time(), "updates": books.updates, "policy_version": books.policy_version,
                         "env_steps": books.env_steps, "last_eval_return": books.evaluations.last_eval_return, "finished": finished})
@@ -68,4 +68,6 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
             shutdown.announce("finished")
         else:
             log.info("stopping (%s) at %d updates", stop.reason, books.updates)
-    return 1 if mismatch else 0
+    if mismatch:
+        return 1
+    return 0 if written else EXIT_STALE_CHECKPOINT

@@ -26,6 +26,7 @@ from typing import Any, Callable
 
 from silcr.common import protocol as P
 from silcr.common.config import Config, ConfigError
+from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT
 
 #: The components' loggers, written to <run dir>/logs/single-process.log while an actors=0 model learns.
 COMPONENT_LOGGERS = ("train", "learner", "buffer", "actor", "clients", "protocol", "mujoco")
@@ -98,12 +99,17 @@ class InProcessTraining:
             snapshot.write(checkpoint_path(self.cfg), snapshot.take(self.run.replay))
 
     def close(self) -> None:
-        """The last checkpoints written, the records closed, the run directory released."""
+        """The last checkpoints written, the records closed, the run directory released; OSError when a final
+        checkpoint could not be written (the files on disk are stale)."""
+        from silcr.deploy.console import stale_checkpoints_message
+
         try:
             with self.component_logs():
-                self.run.close()
+                stale = self.run.close()
         finally:
             self._held.close()
+        if stale:
+            raise OSError(stale_checkpoints_message(self.cfg.run_dir, stale).removeprefix("silcr train: error: "))
 
     @contextlib.contextmanager
     def component_logs(self):
@@ -170,6 +176,9 @@ class DistributedTraining:
                 watcher.join()
         if code == 130 and not stopped.is_set():
             raise KeyboardInterrupt
+        if code == EXIT_STALE_CHECKPOINT:
+            raise OSError(f"the run ended but its final checkpoints could not be written (exit code {code}); the "
+                          f"checkpoints in {self.cfg.run_dir / 'checkpoints'} are stale (logs: {self.cfg.run_dir / 'logs'})")
         if code not in (0, 130):
             raise RuntimeError(f"the distributed run ended with exit code {code}; the components' logs are in "
                                f"{self.cfg.run_dir / 'logs'}")

@@ -9,7 +9,7 @@ import tomllib
 
 import pytest
 
-from silcr.cli import build_parser
+from silcr.cli import build_parser, command
 from silcr.common.config import Config, ConfigError, resolve
 from tests.helpers import REPO
 
@@ -118,6 +118,31 @@ def test_a_capacity_the_machine_cannot_hold_is_one_line_through_a_config_file(tm
     r = _cli("train", "--run", "big", "--config", "big.toml", cwd=tmp_path)
     assert r.returncode == 2 and "Traceback" not in r.stderr and "would reserve" in r.stderr, r.stderr
     assert sorted(p.name for p in tmp_path.iterdir()) == ["big.toml"]
+
+
+@pytest.mark.parametrize("source", ["file", "environment"])
+def test_a_bad_value_is_refused_even_where_the_command_line_overrides_it(tmp_path, source):
+    """Issue 42, item 4: `total_steps = -100` in a --config file was accepted when --total-steps was also given."""
+    env = None
+    args = ["train", "--run", "over", "--total-steps", "1000"]
+    if source == "file":
+        (tmp_path / "run.toml").write_text("total_steps = -100\n")
+        args += ["--config", "run.toml"]
+        needle = "run.toml: total_steps: must be >= 1, got -100"
+    else:
+        import os
+
+        env = os.environ | {"SILCR_TAU": "7"}
+        args += ["--tau", "0.005"]
+        needle = "SILCR_TAU: must be in (0, 1], got 7.0"
+    r = subprocess.run(command(*args), capture_output=True, text=True, cwd=tmp_path, timeout=120, env=env)
+    assert r.returncode == 2 and "Traceback" not in r.stderr and needle in r.stderr, r.stderr
+    assert len(r.stderr.strip().splitlines()) == 1
+    assert not (tmp_path / "runs").exists()
+    # and without the override each is refused the same way, as before
+    with pytest.raises(ConfigError, match="must be >= 1"):
+        (tmp_path / "alone.toml").write_text("total_steps = -100\n")
+        _resolve(["--config", str(tmp_path / "alone.toml")])
 
 
 def test_every_subcommand_has_help():

@@ -11,6 +11,7 @@ import subprocess
 import sys
 
 from silcr.cli import command
+from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT
 from tests.helpers import REPO, Processes, free_port, wait_for
 
 SMALL = ["--env", "InvertedPendulum-v5", "--hidden", "32", "32", "--learning-starts", "300", "--batch-size", "32",
@@ -29,9 +30,13 @@ def test_a_learner_checkpoint_that_cannot_be_written_is_counted_and_training_goe
         wait_for(learner_pt.exists, 120, "the first learner checkpoint")
         learner_pt.unlink()
         learner_pt.mkdir()  # every later write fails: the rename onto a directory is refused
-        assert train.wait(600) == 0, procs.log("train")
+        # the run trains to its end, and then says that its checkpoint is stale (it printed "done" and exited 0)
+        assert train.wait(600) == EXIT_STALE_CHECKPOINT, procs.log("train")
     finally:
         procs.stop_all()
+    err = procs.log("train")
+    assert "the final checkpoint of the learner could not be written" in err and str(learner_pt) in err
+    assert "done." not in err
     rows = list(csv.DictReader(open(run_dir / "progress.csv")))
     assert int(rows[-1]["env_steps"]) >= 5000 and int(rows[-1]["updates"]) >= 4000
     assert int(rows[-1]["checkpoints_failed"]) >= 10  # one per 200 updates after the sabotage, the last one too
@@ -40,6 +45,35 @@ def test_a_learner_checkpoint_that_cannot_be_written_is_counted_and_training_goe
     assert "the final checkpoint could not be written" in log
     assert sorted(p.name for p in (run_dir / "checkpoints").iterdir()) == ["buffer.ckpt", "learner.pt"]  # no temp file
     shutil.rmtree(learner_pt)
+
+
+def test_a_distributed_run_whose_final_checkpoints_fail_ends_non_zero_naming_them(tmp_path):
+    """Issue 42, item 1: both components logged an error, yet `silcr train` printed "done" and exited 0, so a later
+    --resume went on from stale checkpoints unawares. Now it exits EXIT_STALE_CHECKPOINT (4) and names them."""
+    procs = Processes(tmp_path)
+    run_dir = tmp_path / "runs" / "stale"
+    train = procs.start("train", "train", "--run", "stale", "--runs-dir", str(tmp_path / "runs"), *SMALL,
+                        "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}", "--actors", "2", "--total-steps", "4000",
+                        "--checkpoint-interval", "200", "--buffer-checkpoint-interval", "1")
+    try:
+        ckpts = run_dir / "checkpoints"
+        wait_for(lambda: (ckpts / "learner.pt").exists() and (ckpts / "buffer.ckpt").exists(), 180,
+                 "both first checkpoints")
+        for name in ("learner.pt", "buffer.ckpt"):
+            (ckpts / name).unlink()
+            (ckpts / name).mkdir()  # from now on every write of it fails
+        code = train.wait(600)
+    finally:
+        procs.stop_all()
+    err = procs.log("train")
+    assert code == EXIT_STALE_CHECKPOINT, err
+    line = next(line for line in err.splitlines() if "could not be written" in line)
+    assert "the learner and the buffer" in line and str(ckpts / "learner.pt") in line and str(ckpts / "buffer.ckpt") in line
+    assert "Traceback" not in err and procs.orphans == []
+    rows = list(csv.DictReader(open(run_dir / "progress.csv")))
+    assert int(rows[-1]["env_steps"]) >= 4000  # the run itself finished
+    for name in ("learner.pt", "buffer.ckpt"):
+        shutil.rmtree(ckpts / name)
 
 
 def _evil_pickle(path, marker) -> None:
