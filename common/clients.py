@@ -672,15 +672,20 @@ class StatsPublisher:
     """JSON stats on one key. DROP congestion control and low priority: stats are superseded every
     second, and a slow monitor must never hold a component back."""
 
-    def __init__(self, session: zenoh.Session, key: str, extra: Callable[[], dict] | None = None) -> None:
+    def __init__(self, session: zenoh.Session, key: str, extra: Callable[[], dict] | None = None,
+                 on_put: Callable[[], None] | None = None) -> None:
         self._pub = session.declare_publisher(key, encoding=zenoh.Encoding.APPLICATION_JSON,
                                               congestion_control=zenoh.CongestionControl.DROP,
                                               priority=zenoh.Priority.DATA_LOW)
         self._extra = extra
+        self._on_put = on_put
 
     def put(self, stats: dict) -> None:
-        """Publish `stats` (and the `extra` counters every message of this component carries)."""
+        """Publish `stats` (and the `extra` counters every message of this component carries); `on_put` follows
+        (the component's heartbeat, `common.health`: written from the loop that publishes)."""
         self._pub.put(P.Stats(stats | (self._extra() if self._extra else {})).encode())
+        if self._on_put is not None:
+            self._on_put()
 
 
 # ---------------------------------------------------------------------------

@@ -67,14 +67,14 @@ class Config:
                        f"the others always use episodic", choices=REWARD_MODES)
     seed: int = _opt(0, ALL, "base seed; actor i uses seed + i")
     # --- Zenoh -----------------------------------------------------------------
-    connect: list[str] = _opt([], ALL | {"monitor"}, "Zenoh endpoints to connect to (default: the local router)", nargs="+")
+    connect: list[str] = _opt([], ALL | {"monitor", "health"}, "Zenoh endpoints to connect to (default: the local router)", nargs="+")
     listen: list[str] = _opt([], ALL, "Zenoh endpoints this process listens on (default tcp/127.0.0.1:0: loopback only)", nargs="+")
-    zenoh_mode: str = _opt("peer", ALL | {"monitor"}, "peer (direct links between components) or client (everything through the router)", choices=ZENOH_MODES)
+    zenoh_mode: str = _opt("peer", ALL | {"monitor", "health"}, "peer (direct links between components) or client (everything through the router)", choices=ZENOH_MODES)
     actor_zenoh_mode: str = _opt("auto", {"train"}, "how the actors `silcr train` starts join the run: peer (gossip "
                                  "links each to every other component and actor), client (one link each, to the "
                                  f"router, which relays), or auto: peer up to {PEER_ACTORS_MAX} actors, client above "
                                  "(docs/scaling.md)", choices=("auto", *ZENOH_MODES))
-    zenoh_config: str = _opt("", ALL | {"monitor"}, "Zenoh JSON5 config file applied before the options above")
+    zenoh_config: str = _opt("", ALL | {"monitor", "health"}, "Zenoh JSON5 config file applied before the options above")
     zenoh_listen: str = _opt("tcp/127.0.0.1:7447", {"train"}, "endpoint of the router that `silcr train` starts")
     # --- buffer service --------------------------------------------------------
     online_capacity: int = _opt(1_000_000, SERVICE, "D_O size in transitions (Table I: 1e6)")
@@ -163,6 +163,9 @@ class Config:
     weights_wait: float = _opt(15.0, {"train", "actor"}, "seconds an actor waits at start for the learner's weights before acting with its own random policy")
     # --- stats -----------------------------------------------------------------
     stats_interval: float = _opt(1.0, ALL, "seconds between stats messages")
+    health_file: str = _opt("", ALL | {"health"}, "write a heartbeat to this file with every stats message, from the "
+                            "component's main loop, for `silcr health` (a scheduler's liveness and readiness probes); "
+                            "empty: none")
 
     # ------------------------------------------------------------------------
     @property
@@ -391,7 +394,7 @@ def check_values(values: Mapping[str, Any], label: Callable[[str], str] = option
 
 
 def validate(cfg: Config, role: str) -> None:
-    if not cfg.run:
+    if not cfg.run and role != "health":  # `silcr health` reads the run from the heartbeat
         raise ConfigError("--run", "a run name is required")
     check_values(cfg.to_dict())
     algo = algorithms.algorithm(cfg.algo)

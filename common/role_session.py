@@ -4,7 +4,8 @@
 `--zenoh-mode`, `--zenoh-config`), stops the role when anyone announces the end of the
 run, declares the role's liveliness token (`silcr/<run>/alive/<role>[/<id>]`) and its
 stats publisher (every message carries `shutdown_rejections`: malformed shutdown
-messages, ignored), and gives the role its stats schedule. On the way out it withdraws
+messages, ignored; with `--health-file`, each is followed by the heartbeat `silcr health`
+reads: common/health.py), and gives the role its stats schedule. On the way out it withdraws
 the token, so the others see the role leave before its session closes.
 """
 
@@ -20,6 +21,7 @@ from silcr.common import protocol as P
 from silcr.common.clients import StatsPublisher, stop_on_shutdown
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
+from silcr.common.health import Heartbeat
 from silcr.common.lifecycle import StopFlag
 from silcr.common.schedule import Every
 from silcr.common.zenoh_session import open_session, session_config
@@ -42,9 +44,12 @@ def role_session(cfg: Config, stop: StopFlag, role: str, ident: int | None = Non
     spec = spec or EnvSpec.of(cfg.env)
     with open_session(session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)) as session:
         shutdown = stop_on_shutdown(session, keys, stop)
-        token = session.liveliness().declare_token(keys.alive(role, ident))
+        token_key = keys.alive(role, ident)
+        token = session.liveliness().declare_token(token_key)
+        beat = Heartbeat(cfg.health_file, cfg.run, role, token_key).beat if cfg.health_file else None
         try:
-            yield RoleSession(spec, keys, session, StatsPublisher(session, keys.stats(role, ident), shutdown.stats),
+            yield RoleSession(spec, keys, session,
+                              StatsPublisher(session, keys.stats(role, ident), shutdown.stats, on_put=beat),
                               Every(cfg.stats_interval))
         finally:
             token.undeclare()

@@ -22,7 +22,7 @@ def check(cfg: Config, role: str) -> None:
     """Options that can only be checked by trying them: the env id and the Zenoh endpoints."""
     from silcr.common.zenoh_session import check_endpoint, session_config
 
-    if role != "monitor":
+    if role not in ("monitor", "health"):
         from silcr.common.envs import EnvSpec
 
         try:

@@ -31,6 +31,7 @@ ROLES_HELP = {
     "eval": "evaluate a checkpoint's deterministic policy, optionally recording a video",
     "demos": "record a checkpoint's episodes as a demonstrations file for --algo sqil",
     "sweep": "run every (algorithm, task, seed) cell of an experiment file, resuming unfinished cells",
+    "health": "check a running component's heartbeat (alive) and Zenoh liveliness token (--ready): a scheduler's probe",
 }
 
 
@@ -139,6 +140,13 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--zenoh-config", default="", help="Zenoh JSON5 config file")
             continue
         add_options(p, role)
+        if role == "health":
+            p.add_argument("--ready", action="store_true", help="also check that the component's Zenoh liveliness "
+                           "token is visible through the router (readiness); without it, only that its loop runs")
+            p.add_argument("--stale-after", type=float, default=300.0, metavar="S", help="a heartbeat older than this "
+                           "many seconds means stuck (default: 300: longer than a slow evaluation or checkpoint)")
+            p.add_argument("--timeout", type=float, default=5.0, metavar="S", help="with --ready: seconds to wait for "
+                           "the token (default: 5)")
         if role == "monitor":
             p.add_argument("--once", action="store_true", help="print one snapshot and exit")
             p.add_argument("--json", action="store_true", help="with --once: print the snapshot as JSON")
@@ -256,6 +264,12 @@ def _main(argv: list[str] | None) -> int:
             return train(cfg)
         except (RunInUse, ConfigError) as e:
             subs[role].error(str(e))
+    if role == "health":
+        from silcr.deploy.health import run_health
+
+        if not args.stale_after > 0 or not args.timeout > 0:
+            subs[role].error("--stale-after and --timeout must be > 0")
+        return run_health(cfg, args.ready, args.stale_after, args.timeout)
     stop = StopFlag().install_signal_handlers()
     if role == "monitor":
         from silcr.deploy.monitor import run_monitor

@@ -64,7 +64,8 @@ def test_tls_acl_lets_the_run_train_and_refuses_a_rogue_actor(tmp_path, certs):
     for role in ("buffer", "learner", "actor"):
         conf = _render("client-tls.json5", tmp_path / f"{role}.json5", CERTS=str(certs), ROLE=role)
         extra = ["--runs-dir", str(tmp_path / "runs")] if role != "actor" else []
-        procs.start(role, role, *common, *extra, "--zenoh-config", str(conf))
+        procs.start(role, role, *common, *extra, "--zenoh-config", str(conf),
+                    "--health-file", str(tmp_path / f"{role}.health.json"))
     try:
         monitor = wait_for(lambda: _try(lambda: _tls_client(port, certs, "monitor")), 60, "the TLS router")
         stats = LatestJson(monitor, keys.stats_all)
@@ -84,6 +85,17 @@ def test_tls_acl_lets_the_run_train_and_refuses_a_rogue_actor(tmp_path, certs):
         wait_for(advancing, 180, "training to advance over TLS with access control")
         buf = stats.get(keys.stats_buffer)
         assert buf["episodes_received"] > 0 and buf["episodes_rejected"] == 0
+
+        # The readiness probe through the same TLS link and access control, with each role's own certificate
+        # (as the Kubernetes TLS overlay runs it): an actor may ask for its own liveliness token.
+        from silcr.cli import command
+
+        for role in ("buffer", "learner", "actor"):
+            r = subprocess.run(command("health", "--ready", "--health-file", str(tmp_path / f"{role}.health.json"),
+                                       "--zenoh-mode", "client", "--connect", f"tls/127.0.0.1:{port}",
+                                       "--zenoh-config", str(tmp_path / f"{role}.json5")),
+                               capture_output=True, text=True, timeout=60)
+            assert r.returncode == 0 and "visible" in r.stdout, (role, r.stdout + r.stderr)
 
         # A rogue client with an actor's (valid) credentials.
         rogue = _tls_client(port, certs, "actor")
