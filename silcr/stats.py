@@ -186,7 +186,46 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
     if figure is not None:
         seeds = {env: {label: len(runs_) for label, runs_ in groups[env].items()} for env in envs}
         _interval_figure(per_task, seeds, figure)
+        if normalised:
+            profiles = figure.with_name(figure.stem.removesuffix("-stats") + "-profiles.png")
+            at = _profile_figure(rly, normalised, profiles, reps, seed)
+            lines += ["", f"Performance profiles (rliable: the share of runs whose normalised final return is above "
+                          f"tau, 95% bands) in {profiles.name}; the share above tau = 0.5 and 1:", "",
+                      "| group | runs | share > 0.5 | share > 1 |", "|---|---|---|---|"]
+            lines += [f"| {label} | {normalised[label].size} | {half:.2f} | {one:.2f} |" for label, (half, one) in at.items()]
     return "\n".join(lines) + "\n"
+
+
+def _profile_figure(rly, normalised: dict[str, np.ndarray], out: Path, reps: int, seed: int) -> dict[str, tuple]:
+    """rliable's performance profiles of the normalised final returns, all tasks' runs together; each group's
+    share of runs above tau = 0.5 and 1, for the table."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    from rliable import plot_utils
+
+    labels = sorted(normalised, key=label_key)
+    high = max(1.5, float(max(np.max(v) for v in normalised.values())))
+    taus = np.linspace(min(0.0, float(min(np.min(v) for v in normalised.values()))), high, 101)
+    state = np.random.get_state()
+    np.random.seed(seed)  # rliable's bootstrap draws from the global generator (see _estimates)
+    try:
+        profiles, bands = rly.create_performance_profile({k: normalised[k] for k in labels}, taus, reps=reps)
+    finally:
+        np.random.set_state(state)
+    colour = group_colours(set(labels))
+    fig, ax = plt.subplots(figsize=(7, 4.5))
+    plot_utils.plot_performance_profiles(profiles, taus, performance_profile_cis=bands, ax=ax,
+                                         colors={k: colour[k] for k in labels},
+                                         xlabel="normalised final return (tau)", ylabel="fraction of runs above tau")
+    from matplotlib.lines import Line2D
+
+    ax.legend([Line2D([], [], color=colour[k]) for k in labels], labels, loc="upper right", fontsize="small")
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, dpi=120, bbox_inches="tight")
+    plt.close(fig)
+    return {k: (float((normalised[k] > 0.5).mean()), float((normalised[k] > 1.0).mean())) for k in labels}
 
 
 def figure_labels(seeds: dict[str, dict[str, int]], labels: list[str]) -> dict[str, str]:

@@ -297,6 +297,10 @@ def test_plot_stats_rliable_gives_iqm_intervals_normalised_aggregate_and_probabi
     assert "| Hopper-v5 | ircr | 1.00 [1.00, 1.00] |" in table  # every silcr run beats every ircr run
     assert "| all 2 tasks | ircr | 1.00 [1.00, 1.00] |" in table
     assert (tmp_path / "fig-stats.png").stat().st_size > 1000
+    # performance profiles: normalised finals silcr 0.25, 0.5, 0.75 on each task, ircr 0.05-0.15, sac-dense 1
+    assert (tmp_path / "fig-profiles.png").stat().st_size > 1000
+    assert "| silcr | 6 | 0.33 | 0.00 |" in table and "| ircr | 6 | 0.00 | 0.00 |" in table
+    assert "| sac-dense | 2 | 1.00 | 0.00 |" in table
     from silcr.stats import figure_labels  # the figure names a one-seed group (its bar has no width)
 
     seeds = {"A": {"sac-dense": 1, "silcr": 3, "sac": 3}, "B": {"sac-dense": 1, "silcr": 3, "sac": 3}}
