@@ -28,18 +28,26 @@ def save_checkpoint(path: Path, payload: dict[str, Any]) -> None:
     write_atomic(path, lambda f: torch.save(payload, f))
 
 
-def load_checkpoint(path: Path) -> dict[str, Any]:
+def load_plain(path: Path, error: type[Exception], what: str) -> Any:
+    """`torch.load(weights_only=True)` of the `what` at `path`, or `error` with one line: missing, holding objects
+    that would run code (refused), or unreadable. Learner checkpoints and the Python API's model files use it."""
     if not path.exists():
-        raise CheckpointError(f"no checkpoint at {path}")
+        raise error(f"no {what} at {path}")
     try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
+        return torch.load(path, map_location="cpu", weights_only=True)
     except pickle.UnpicklingError as e:  # what weights_only refuses: objects that are not plain data
         # torch's message suggests loading with weights_only=False; keep only the line naming the object.
-        what = next((line.strip() for line in str(e).splitlines() if "GLOBAL" in line), type(e).__name__)
-        raise CheckpointError(f"checkpoint {path} holds objects other than tensors and plain data, which could run "
-                              f"code when loaded; refused ({what})") from None
+        named = [line.strip() for line in str(e).splitlines() if "GLOBAL" in line]
+        if not named:  # no object named: not a pickle at all
+            raise error(f"{what} {path} is unreadable or corrupt (not a torch file)") from None
+        raise error(f"{what} {path} holds objects other than tensors and plain data, which could run code when "
+                    f"loaded; refused ({named[0]})") from None
     except Exception as e:  # torch raises several types for truncated or foreign files
-        raise CheckpointError(f"checkpoint {path} is unreadable or corrupt ({type(e).__name__}: {e})") from None
+        raise error(f"{what} {path} is unreadable or corrupt ({type(e).__name__}: {e})") from None
+
+
+def load_checkpoint(path: Path) -> dict[str, Any]:
+    payload = load_plain(path, CheckpointError, "checkpoint")
     if not isinstance(payload, dict) or not isinstance(payload.get("sac"), dict) or "counters" not in payload:
         raise CheckpointError(f"{path} is not a silcr learner checkpoint")
     return payload

@@ -17,7 +17,6 @@ code, as learner checkpoints: `learner/checkpoint.py`), written atomically:
 
 from __future__ import annotations
 
-import pickle
 from pathlib import Path
 from typing import Any
 
@@ -72,20 +71,12 @@ def write(path: Path, algo: str, config: dict[str, Any], weights: P.Weights, spe
 
 def read(path: Path) -> dict[str, Any]:
     """The file's contents, checked to be a model this release reads; ModelFileError with one line otherwise."""
-    if not path.is_file():
-        raise ModelFileError(f"no model file at {path}")
-    try:
-        payload = torch.load(path, map_location="cpu", weights_only=True)
-    except pickle.UnpicklingError as e:
-        if "GLOBAL" not in str(e):  # no object named: not a pickle of ours at all, a foreign or corrupt file
-            raise ModelFileError(f"{path} is not a silcr model file, or is corrupt") from None
-        raise ModelFileError(f"{path} holds objects other than tensors and plain data; refused (loading it could "
-                             f"run code)") from None
-    except Exception as e:  # torch raises several types for truncated or foreign files
-        raise ModelFileError(f"{path} is not a silcr model file, or is corrupt ({type(e).__name__})") from None
+    from silcr.learner.checkpoint import load_plain
+
+    payload = load_plain(path, ModelFileError, "model file")
     if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
         what = "a learner checkpoint (load it with silcr eval, or train from it with --resume)" \
-            if isinstance(payload, dict) and "sac" in payload and "counters" in payload else "not a silcr model file"
+            if isinstance(payload, dict) and {"counters", "config"} <= set(payload) else "not a silcr model file"
         raise ModelFileError(f"{path} is {what}")
     version = payload.get("version")
     if not isinstance(version, int) or version > MODEL_VERSION:

@@ -150,8 +150,11 @@ def test_model_files_from_another_algorithm_or_a_newer_silcr_are_refused(tmp_pat
     with pytest.raises(ModelFileError, match="newer silcr"):
         SAC.load(tmp_path / "newer.silcr")
     (tmp_path / "junk.silcr").write_bytes(b"not a model")
-    with pytest.raises(ModelFileError, match="not a silcr model"):
+    with pytest.raises(ModelFileError, match="unreadable or corrupt"):
         SAC.load(tmp_path / "junk.silcr")
+    torch.save({"sac": {}, "counters": {}, "config": {}}, tmp_path / "learner.pt")
+    with pytest.raises(ModelFileError, match="is a learner checkpoint"):
+        SAC.load(tmp_path / "learner.pt")
     with pytest.raises(ModelFileError, match="without its training state"):
         SAC.load(tmp_path / "sac.silcr", include_training_state=True)
     with pytest.raises(ValueError, match="no training state"):
