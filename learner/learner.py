@@ -16,7 +16,7 @@ from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 
 from .bookkeeping import Bookkeeping
-from .update import Update
+from .update import Update, check_rows
 
 
 class Learner:
@@ -27,9 +27,10 @@ class Learner:
     def step(self, reply: P.BatchReply) -> None:
         """Train on one `ok` reply (one update per batch), then publish weights and checkpoint when due."""
         self.books.see(reply.meta)
-        t0 = time.monotonic()
-        n = self.update.train(reply, self.books.updates)  # checks the reply is what this learner's --algo needs
+        check_rows(reply, self.update.cfg.algo)
         self.books.note_rows(reply)
+        t0 = time.monotonic()
+        n = self.update.train(reply, self.books.updates)
         self.books.counted(n, time.monotonic() - t0)
 
     # The rest is the bookkeeping's, named here for the loops that drive a learner.

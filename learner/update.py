@@ -71,6 +71,17 @@ class BufferMismatch(RuntimeError):
     """The buffer service's batches are not what this learner's --algo needs (it runs another --algo)."""
 
 
+def check_rows(reply: P.BatchReply, algo: str) -> None:
+    """A reply's batches mix D_E rows exactly when `algo` does; BufferMismatch otherwise (a buffer too old to
+    name its algorithm in its replies runs another --algo)."""
+    size = int(reply.meta["batch_size"])
+    online = int(reply.meta.get("online_rows", size))  # rows of each batch from D_O; the rest are D_E's
+    if (online < size) != algorithm(algo).mixes_expert:
+        raise BufferMismatch(f"--algo {algo}: the buffer service "
+                             f"{'mixes D_E rows into' if online < size else 'sends no D_E rows in'} its batches; "
+                             f"it runs another --algo (start both with the same --algo)")
+
+
 class Update:
     """The networks, the optimisers and the gradient steps of one learner."""
 
@@ -134,11 +145,6 @@ class Update:
         if self.gasil is not None and reply.disc is None:
             raise BufferMismatch("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
                                  "or predates GASIL (start it with --algo gasil)")
-        online = int(reply.meta.get("online_rows", size))  # rows of each batch from D_O; the rest are D_E's
-        if (online < size) != algorithm(self.cfg.algo).mixes_expert:  # a buffer too old to name its algorithm
-            raise BufferMismatch(f"--algo {self.cfg.algo}: the buffer service "
-                                 f"{'mixes D_E rows into' if online < size else 'sends no D_E rows in'} its batches; "
-                                 f"it runs another --algo (start both with the same --algo)")
         if reply.batch.action_kind != self.spec.action_kind:
             raise BufferMismatch(f"the buffer service sent {reply.batch.action_kind} actions; this learner's env "
                                  f"{self.spec.env_id} has {self.spec.action_kind} ones (it serves another --env)")
