@@ -7,11 +7,13 @@ component through the same clean path: close the Zenoh session, flush files.
 
 from __future__ import annotations
 
+import contextlib
 import logging
 import os
 import signal
 import sys
 import threading
+from typing import Iterator
 
 #: A component exits with this when it cannot start from its inputs (a corrupt or foreign
 #: checkpoint): restarting it would fail the same way, so `silcr train` does not, and exits 2.
@@ -62,6 +64,31 @@ class StopFlag:
             if self.is_set():
                 return True
         return False
+
+
+@contextlib.contextmanager
+def caller_signal_handlers() -> Iterator[None]:
+    """Whatever the block installs for SIGINT and SIGTERM, the caller's handlers come back after it.
+
+    A launcher also runs inside other programs (the Python API's caller, a test): a handler it
+    leaves behind, or a SIGINT left ignored while it closed, would be inherited by the caller's
+    next child processes (an ignored signal survives exec) and change how they stop.
+    """
+    previous = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for signum, handler in previous.items():
+            # None: installed outside Python; the default is the closest Python can put back.
+            signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+
+
+def interrupt_on_ctrl_c() -> None:
+    """Ctrl-C raises KeyboardInterrupt here, even where SIGINT came ignored from the parent (a
+    shell's background job, `nohup`): the launchers' children stop on SIGINT whatever they
+    inherited (`StopFlag`), so a launcher that ignored it would see them end and call the
+    run finished."""
+    signal.signal(signal.SIGINT, signal.default_int_handler)
 
 
 def setup_logging(component: str, level: int = logging.INFO) -> logging.Logger:

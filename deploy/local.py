@@ -27,7 +27,7 @@ from silcr.common import protocol as P
 from silcr.common import seeds
 from silcr.common.clients import Shutdown
 from silcr.common.config import Config, actor_zenoh_mode
-from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, setup_logging
+from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, interrupt_on_ctrl_c, setup_logging
 from silcr.common.zenoh_session import open_session, session_config
 from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
 from silcr.deploy.monitor import StatsSnapshot
@@ -159,6 +159,7 @@ def run_train(cfg: Config) -> int:
     previous = signal.getsignal(signal.SIGTERM)
     previous_int = signal.getsignal(signal.SIGINT)  # the caller's (the Python API's caller's: a notebook's, say)
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
+    interrupt_on_ctrl_c()
     try:
         run.start("router", cfg, "router")
         deadline = time.monotonic() + 15

@@ -42,7 +42,7 @@ from silcr.common import seeds
 from silcr.common.clients import InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
-from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT, StopFlag
+from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT, StopFlag, caller_signal_handlers
 from silcr.common.schedule import Every
 from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
 from silcr.learner.checkpoint import CheckpointError
@@ -148,6 +148,11 @@ class SingleProcessRun:
 
 
 def run_single_process(cfg: Config) -> int:
+    with caller_signal_handlers():  # the API and tests call this in their own process
+        return _run_single_process(cfg)
+
+
+def _run_single_process(cfg: Config) -> int:
     run_dir = cfg.run_dir
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     cfg.save(run_dir / "config.toml")

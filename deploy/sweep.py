@@ -42,6 +42,7 @@ from typing import Any
 
 from silcr.common.commands import command, option_args
 from silcr.common.config import FIELDS, ConfigError, from_options
+from silcr.common.lifecycle import caller_signal_handlers, interrupt_on_ctrl_c
 
 DONE_MARKER = "sweep-done.json"
 # Set per cell by the sweep itself, so an experiment file may not set them.
@@ -196,6 +197,12 @@ def selected_cells(exp: dict[str, Any], seeds: list[int], only: str, shard: tupl
 
 def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: int, shard: tuple[int, int],
               only: str, dry_run: bool, port_base: int, resume: bool = True) -> int:
+    with caller_signal_handlers():
+        return _run_sweep(exp, seeds, runs_dir, parallel, shard, only, dry_run, port_base, resume)
+
+
+def _run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: int, shard: tuple[int, int],
+               only: str, dry_run: bool, port_base: int, resume: bool) -> int:
     cells = selected_cells(exp, seeds, only, shard)
     k, n = shard
     states = {c.name: cell_state(runs_dir / c.name) for c in cells}
@@ -218,6 +225,7 @@ def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: i
         raise KeyboardInterrupt
 
     signal.signal(signal.SIGTERM, sigterm)
+    interrupt_on_ctrl_c()
     running: list[_Running] = []
     failed: list[str] = []
     finished = len(cells) - len(todo)
@@ -275,11 +283,6 @@ def run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: i
                 if r.proc.poll() is None:
                     os.killpg(r.proc.pid, signal.SIGKILL)
                 r.proc.wait()
-        # The cells are stopped: a later signal has nothing left to stop, and one that came during the
-        # interpreter's exit killed the sweep (exit -15, not 130) once the handlers were reset; ignored
-        # handlers are not reset.
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
         for r in running:
             r.log.close()
         return 130
@@ -324,6 +327,12 @@ def run_sweep_cli(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     except ExperimentError as e:
         print(f"silcr sweep: error: {e}", file=sys.stderr)
         return 2 if "--resume" in str(e) else 1
+    if rc == 130:
+        # The cells are stopped: a later signal has nothing left to stop, and one that came during the
+        # interpreter's exit killed the sweep (exit -15, not 130) once the handlers were reset; ignored
+        # handlers are not reset. (Here, not in run_sweep: an in-process caller gets its handlers back.)
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
     for line in lines:  # a dry run shows the plan and then everything that would stop it
         print(f"silcr sweep: error: {line}", file=sys.stderr)
     return 2 if problems else rc

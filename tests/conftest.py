@@ -1,5 +1,7 @@
 from __future__ import annotations
 
+import signal
+
 import numpy as np
 import pytest
 
@@ -20,3 +22,17 @@ def make_episode(length: int, ret: float = 0.0, obs_dim: int = 4, act_dim: int =
 @pytest.fixture
 def episode_factory():
     return make_episode
+
+
+@pytest.fixture(autouse=True)
+def signal_handlers_left_as_found():
+    """Code a test runs in this process (a launcher through `main`, the Python API) must hand the
+    SIGINT and SIGTERM handlers back as it found them: an ignored SIGINT left behind is inherited by
+    every process a later test starts, and Ctrl-C then stops their children but not them."""
+    before = {s: signal.getsignal(s) for s in (signal.SIGINT, signal.SIGTERM)}
+    yield
+    after = {s: signal.getsignal(s) for s in before}
+    for signum, handler in after.items():
+        signal.signal(signum, before[signum])  # the next test starts clean either way
+    changed = {signal.Signals(s).name: (before[s], after[s]) for s in before if after[s] != before[s]}
+    assert not changed, f"the test left signal handlers changed (before, after): {changed}"

@@ -70,11 +70,14 @@ class Processes:
         return {**os.environ, "SILCR_TEST_TAG": self.tag, "PYTHONUNBUFFERED": "1",
                 "SILCR_RUNS_DIR": str(self.log_dir / "runs")}
 
-    def start(self, name: str, *args: str, new_session: bool = False) -> subprocess.Popen:
+    def start(self, name: str, *args: str, new_session: bool = False, sigint_ignored: bool = False) -> subprocess.Popen:
+        """`sigint_ignored`: start it as a shell starts a background job, with SIGINT ignored (inherited)."""
         log = open(self.log_dir / f"{name}.log", "w")
+        command = [sys.executable, "-m", "silcr.cli", *args]
+        if sigint_ignored:  # the shell's way: an ignored disposition survives exec
+            command = ["sh", "-c", "trap '' INT; exec \"$@\"", "sh", *command]
         p = subprocess.Popen(
-            [sys.executable, "-m", "silcr.cli", *args],
-            stdout=log, stderr=subprocess.STDOUT, env=self.env(), cwd=REPO, start_new_session=new_session,
+            command, stdout=log, stderr=subprocess.STDOUT, env=self.env(), cwd=REPO, start_new_session=new_session,
         )
         self.procs[name] = p
         return p

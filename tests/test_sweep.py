@@ -133,7 +133,9 @@ def test_an_interrupted_cell_resumes_from_its_checkpoint(tmp_path):
     procs = Processes(tmp_path)
     args = ["sweep", str(exp), "--seeds", "0", "--runs-dir", str(runs), "--port-base", str(free_port())]
     try:
-        sweep = procs.start("sweep1", *args, new_session=True)
+        # Started as a script's background job starts it, with SIGINT ignored: its cells stop on SIGINT
+        # whatever they inherit, so the sweep must too, or it records the stopped cell as done.
+        sweep = procs.start("sweep1", *args, new_session=True, sigint_ignored=True)
         ckpt = cell_dir / "checkpoints" / "learner.pt"
         wait_for(lambda: ckpt.exists() and load_checkpoint(ckpt)["counters"]["updates"] >= 200, 240,
                  "the cell to write learner checkpoints")

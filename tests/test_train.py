@@ -35,10 +35,11 @@ REQUIRED_BUFFER_STATS = {
 }
 
 
-def _train(procs: Processes, run: str, port: int, runs_dir, *extra: str, new_session: bool = False):
+def _train(procs: Processes, run: str, port: int, runs_dir, *extra: str, new_session: bool = False,
+           sigint_ignored: bool = False):
     return procs.start(
         "train", "train", "--run", run, "--runs-dir", str(runs_dir), "--zenoh-listen", f"tcp/127.0.0.1:{port}",
-        *SMALL, *extra, new_session=new_session,
+        *SMALL, *extra, new_session=new_session, sigint_ignored=sigint_ignored,
     )
 
 
@@ -100,13 +101,17 @@ def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
     assert "done" in procs.log("train")
 
 
-def test_ctrl_c_stops_everything_and_leaves_a_usable_checkpoint(tmp_path):
+@pytest.mark.parametrize("inherited", ["sigint-default", "sigint-ignored"])
+def test_ctrl_c_stops_everything_and_leaves_a_usable_checkpoint(tmp_path, inherited):
+    """Also when `silcr train` inherited SIGINT ignored (a background job of a script; CI's once): its
+    children stop on SIGINT whatever they inherit, so the launcher must too, or it calls the run done."""
     procs = Processes(tmp_path)
     port = free_port()
     run = "e2e-ctrlc"
     keys = P.Keys(run)
     # A new session stands in for the terminal: SIGINT goes to the whole process group, as Ctrl-C does.
-    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "100000000", new_session=True)
+    train = _train(procs, run, port, tmp_path / "runs", "--actors", "2", "--total-steps", "100000000", new_session=True,
+                   sigint_ignored=inherited == "sigint-ignored")
     try:
         session = client_when_up(port)
         stats = LatestJson(session, keys.stats_all)
