@@ -28,6 +28,7 @@ EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.exper
 TANH_LOG_PROB_FORMS = ("exact", "official")  # log(1 - tanh^2) in the policy's log-probability (learner.sac)
 CRITIC_NORMS = ("none", "layer")  # a normalisation after each hidden layer of the critics (learner.sac)
 Q_TARGET_CLIPS = ("none", "bound")  # whether the TD target is clipped at the soft-Q bound (learner.sac.clip_target)
+# "auto", either option's default, is resolved for the run's algorithm by `critics_of` (a checked Config never holds it).
 DEVICES = ("auto", "cpu", "cuda")
 ZENOH_MODES = ("peer", "client")
 # Above this many actors, `silcr train` makes them Zenoh clients of its router: gossip links
@@ -105,14 +106,17 @@ class Config:
                                     "end at success, such as MiniGrid's goal (docs/algorithm.md)")
     target_entropy_scale: float = _opt(0.89, {"train", "learner"}, "discrete actions: target entropy as a fraction of "
                                        "log |A| (CleanRL's sac_atari.py: 0.89; Christodoulou 2019: 0.98)")
-    critic_norm: str = _opt("none", {"train", "learner"}, "layer: a LayerNorm after each hidden layer of both "
+    critic_norm: str = _opt("auto", {"train", "learner"}, "layer: a LayerNorm after each hidden layer of both "
                             "critics (RLPD, Ball et al. 2023), which keeps Q from extrapolating past the data; "
-                            "none: plain layers as in the paper (docs/algorithm.md, \"Critics that stay bounded\")",
-                            choices=CRITIC_NORMS, absent="none")
-    q_target_clip: str = _opt("none", {"train", "learner"}, "bound: clip the TD target at the soft-Q bound the labels "
+                            "none: plain layers as in the paper; auto: layer for the labelled algorithms "
+                            f"({', '.join(a.name for a in algorithms.ALGORITHMS.values() if a.labels_bounded)}), "
+                            "none for the others (docs/algorithm.md, \"Critics that stay bounded\")",
+                            choices=("auto", *CRITIC_NORMS), absent="none")
+    q_target_clip: str = _opt("auto", {"train", "learner"}, "bound: clip the TD target at the soft-Q bound the labels "
                               "allow, (1 + gamma alpha H_max) / (1 - gamma), for the labelled algorithms "
                               f"({', '.join(a.name for a in algorithms.ALGORITHMS.values() if a.labels_bounded)}); "
-                              "none: no clip", choices=Q_TARGET_CLIPS, absent="none")
+                              "none: no clip; auto: bound for those algorithms when --gamma is below 1, else none",
+                              choices=("auto", *Q_TARGET_CLIPS), absent="none")
     tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
     total_steps: int = _opt(2_000_000, {"train", "learner", "buffer"}, "environment-step budget of the run (the buffer "
@@ -337,7 +341,19 @@ def _checked(values: dict[str, Any], role: str) -> Config:
     if role == "train" and not cfg.run:
         cfg.run = f"{cfg.env.replace('/', '_')}-{cfg.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
     validate(cfg, role)
+    cfg.critic_norm, cfg.q_target_clip = critics_of(cfg)  # config.toml records what ran, not "auto"
     return cfg
+
+
+def critics_of(cfg: Config) -> tuple[str, str]:
+    """The run's `--critic-norm` and `--q-target-clip`, with `auto` (both defaults) resolved for its algorithm.
+    Both options together held Humanoid's critics, and the labelled algorithms are the ones measured with
+    them (RESULTS.md, "Critics that stay bounded"); an env reward has no known bound to clip at, and SAC's
+    critics stayed under theirs without either, so the env-reward algorithms keep plain critics."""
+    bounded = algorithms.algorithm(cfg.algo).labels_bounded
+    norm = cfg.critic_norm if cfg.critic_norm != "auto" else ("layer" if bounded else "none")
+    clip = cfg.q_target_clip if cfg.q_target_clip != "auto" else ("bound" if bounded and cfg.gamma < 1 else "none")
+    return norm, clip
 
 
 def actor_zenoh_mode(cfg: Config) -> str:

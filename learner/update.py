@@ -22,7 +22,7 @@ import torch
 from silcr.process_env import openmp_wait
 from silcr.common import protocol as P
 from silcr.common.algorithms import LABEL_MAX, algorithm
-from silcr.common.config import Config
+from silcr.common.config import Config, critics_of
 from silcr.common.envs import EnvSpec
 
 from . import denormals
@@ -104,14 +104,15 @@ class Update:
     def _new_sac(self) -> SacState:
         """The SAC update for the env's action kind, with this run's hyperparameters."""
         cfg, spec = self.cfg, self.spec
+        critic_norm, q_target_clip = critics_of(cfg)
         # --q-target-clip bound: the labels' largest value (config validation refuses it for env rewards)
-        target_reward_max = LABEL_MAX if cfg.q_target_clip == "bound" else None
+        target_reward_max = LABEL_MAX if q_target_clip == "bound" else None
         if spec.discrete:
             dhp = DiscreteSacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, cfg.target_entropy_scale,
-                                   cfg.time_limit_terminal, cfg.absorbing_terminal, cfg.critic_norm, target_reward_max)
+                                   cfg.time_limit_terminal, cfg.absorbing_terminal, critic_norm, target_reward_max)
             return DiscreteSac(spec.obs_dim, spec.n_actions, cfg.hidden, dhp, self.device)
         hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
-                      cfg.tanh_log_prob, cfg.absorbing_terminal, cfg.critic_norm, target_reward_max)
+                      cfg.tanh_log_prob, cfg.absorbing_terminal, critic_norm, target_reward_max)
         return Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
 
     def _set_threads(self, spec: EnvSpec) -> int:

@@ -29,7 +29,7 @@ import numpy as np
 
 import silcr.model_file as model_file
 from silcr.common.algorithms import ALGORITHMS
-from silcr.common.config import FIELDS, Config, ConfigError, from_options
+from silcr.common.config import FIELDS, Config, ConfigError, from_options, value_when_absent
 from silcr.training import DistributedTraining, InProcessTraining
 
 #: Options the constructor's own arguments and `learn` set; passing them as options is refused.
@@ -238,7 +238,9 @@ class Model:
             other = next((c.__name__ for c in MODELS.values() if c.algo == payload["algo"]), payload["algo"])
             raise model_file.ModelFileError(f"{path} holds a {payload['algo']} model, not {cls.algo}: load it with "
                                             f"silcr.{other}.load")
-        cfg = Config(**{k: v for k, v in payload["config"].items() if k in FIELDS})
+        # A setting the file lacks ran as it did before the option existed (critics saved before LayerNorm was the default)
+        saved = {k: v for k, v in payload["config"].items() if k in FIELDS}
+        cfg = Config(**({k: value_when_absent(k) for k in FIELDS if k not in saved} | saved))
         actors = 0 if cfg.single_process else cfg.actors
         spec = model_file.spec_of(payload["spec"])
         if env is not None:

@@ -4,6 +4,7 @@ for continuous and discrete SAC, through the update, checkpoints and the command
 from __future__ import annotations
 
 import math
+import tomllib
 
 import pytest
 import torch
@@ -201,3 +202,36 @@ def test_the_target_clip_is_refused_for_env_rewards(tmp_path, algo, ok):
         assert out.returncode == 2 and "--q-target-clip" in out.stderr and "Traceback" not in out.stderr
         assert len(out.stderr.strip().splitlines()) == 1
     assert not (tmp_path / "x").exists()
+
+
+# -- the defaults -----------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("algo, options, expected", [
+    ("silcr", {}, ("layer", "bound")),             # the labelled algorithms: both options (the Humanoid study)
+    ("ircr", {}, ("layer", "bound")),
+    ("sqil", {"demos": __file__}, ("layer", "bound")),
+    ("sac", {}, ("none", "none")),                 # an env reward: plain critics, nothing to clip at
+    ("gasil", {}, ("none", "none")),
+    ("silcr", {"gamma": 1.0}, ("layer", "none")),  # no bound without discounting
+    ("silcr", {"critic_norm": "none", "q_target_clip": "none"}, ("none", "none")),  # a choice stays as made
+    ("silcr", {"critic_norm": "auto", "q_target_clip": "auto"}, ("layer", "bound")),
+])
+def test_auto_resolves_to_the_critics_measured_for_the_algorithm(tmp_path, algo, options, expected):
+    from silcr.common.config import Config, critics_of, default_of, from_options
+
+    assert (default_of("critic_norm"), default_of("q_target_clip")) == ("auto", "auto")
+    cfg = from_options({"algo": algo, "run": "r", "runs_dir": str(tmp_path)} | options, "train")
+    assert (cfg.critic_norm, cfg.q_target_clip) == expected  # what config.toml records: never "auto"
+    cfg.save(tmp_path / "config.toml")
+    saved = tomllib.loads((tmp_path / "config.toml").read_text())
+    assert (saved["critic_norm"], saved["q_target_clip"]) == expected
+    # a Config built directly keeps "auto"; the learner resolves it the same way
+    raw = Config(run="r", algo=algo, **{k: v for k, v in options.items() if k != "demos"})
+    assert critics_of(raw) == expected
+
+
+def test_a_run_without_the_options_in_its_record_reads_as_plain_critics():
+    """config.toml files written before the options existed ran with plain critics, whatever the defaults are now."""
+    from silcr.common.config import value_when_absent
+
+    assert (value_when_absent("critic_norm"), value_when_absent("q_target_clip")) == ("none", "none")
