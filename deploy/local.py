@@ -27,7 +27,8 @@ from silcr.common import protocol as P
 from silcr.common import seeds
 from silcr.common.clients import Shutdown
 from silcr.common.config import Config, actor_zenoh_mode
-from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, interrupt_on_ctrl_c, setup_logging
+from silcr.common.lifecycle import (EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, caller_signal_handlers,
+                                    interrupt_on_ctrl_c, setup_logging)
 from silcr.common.zenoh_session import open_session, session_config
 from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
 from silcr.deploy.monitor import StatsSnapshot
@@ -143,6 +144,11 @@ def _sigterm_as_interrupt(signum: int, frame: object) -> None:
 
 
 def run_train(cfg: Config) -> int:
+    with caller_signal_handlers():  # the caller's (the Python API's caller's: a notebook's, say) come back after
+        return _run_train(cfg)
+
+
+def _run_train(cfg: Config) -> int:
     run_dir = cfg.run_dir
     (run_dir / "logs").mkdir(parents=True, exist_ok=True)
     cfg.save(run_dir / "config.toml")  # the CLI checked the port and holds the run directory's lock
@@ -156,8 +162,6 @@ def run_train(cfg: Config) -> int:
     keys = P.Keys(cfg.run)
     stats = StatsSnapshot(keys)
     code = 0
-    previous = signal.getsignal(signal.SIGTERM)
-    previous_int = signal.getsignal(signal.SIGINT)  # the caller's (the Python API's caller's: a notebook's, say)
     signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
     interrupt_on_ctrl_c()
     try:
@@ -198,8 +202,6 @@ def run_train(cfg: Config) -> int:
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # let the children finish their clean exit
         run.stop_all(order)
-        signal.signal(signal.SIGINT, previous_int)
-        signal.signal(signal.SIGTERM, previous)
     stale = [name for name in ("learner", "buffer") if name in run.procs
              and run.procs[name].exitcode == EXIT_STALE_CHECKPOINT]
     if stale:
