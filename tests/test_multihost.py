@@ -92,6 +92,12 @@ def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
             assert procs.procs["actor-1"].poll() is None  # the same process, reconnected
             assert stats.get(keys.stats_buffer)["episodes_rejected"] == 0
             session.close()
+        except AssertionError as e:
+            # Once, under a heavily loaded full suite, actor 1 did not publish again within 120 s of the link
+            # coming back; it has not recurred since. Keep what each side said, to tell a slow reconnect
+            # from a lost one if it does.
+            logs = "".join(f"\n--- {n}.log ---\n{procs.log(n)[-1500:]}" for n in ("actor-1", "router", "buffer"))
+            raise AssertionError(f"{e}{logs}") from None
         finally:
             procs.stop_all()
     assert procs.orphans == []
