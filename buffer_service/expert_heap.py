@@ -4,7 +4,12 @@ Admission rule (the project's, see docs/algorithm.md; the official code is
 transition-level and can keep partial episodes):
 
 1. An episode longer than M transitions is rejected.
-2. If it fits (stored + its length <= M) it enters.
+2. If it fits (stored + its length <= M) it enters; but once D_E has been full
+   (an episode has found no room), with `refill="better"` (the default) only if
+   its key is strictly above the lowest stored, so the room left over by
+   evicting whole episodes never takes a worse episode and the lowest stored
+   key never falls, as in the official code's full heap. `refill="any"` (runs
+   recorded before the option) lets any episode that fits enter.
 3. Otherwise it enters only if evicting stored episodes whose key is strictly
    lower than its own, lowest first (older first among equal keys), frees
    enough room; those are evicted and it enters. If not, it is rejected and
@@ -31,7 +36,7 @@ import itertools
 
 import numpy as np
 
-from silcr.common.config import EXPERT_ADMISSIONS
+from silcr.common.config import EXPERT_ADMISSIONS, EXPERT_REFILLS
 from silcr.common.protocol import Batch, Episode
 
 from .storage import Drawn, EpisodeIndex, RowStorage, Watcher, detach
@@ -45,13 +50,18 @@ class ExpertHeap:
     """D_E: at most `capacity` transitions of whole episodes, admitted by the rule above. `watcher`
     is told of every episode that enters or leaves."""
 
-    def __init__(self, capacity: int, admission: str = "return", watcher: Watcher | None = None) -> None:
+    def __init__(self, capacity: int, admission: str = "return", watcher: Watcher | None = None,
+                 refill: str = "better") -> None:
         if capacity <= 0:
             raise ValueError(f"expert capacity must be positive, got {capacity}")
         if admission not in EXPERT_ADMISSIONS:
             raise ValueError(f"admission must be one of {EXPERT_ADMISSIONS}, got {admission!r}")
+        if refill not in EXPERT_REFILLS:
+            raise ValueError(f"refill must be one of {EXPERT_REFILLS}, got {refill!r}")
         self.capacity = capacity
         self.admission = admission
+        self.refill = refill
+        self.filled = False  # an episode has found no room: from then on rule 2 asks `refill`
         # Min-heap of (key, insertion order, episode): the root is the first to go.
         self._heap: list[tuple[float, int, Episode]] = []
         self._order = itertools.count()
@@ -101,7 +111,12 @@ class ExpertHeap:
             return False
         order = next(self._order)
         key = self.key(ep, order)
+        if need <= 0 and self.filled and self.refill == "better" and self._heap and key <= self._heap[0][0]:
+            # Room left over by whole-episode evictions: not for an episode the full D_E would refuse.
+            self.rejected += 1
+            return False
         if need > 0:
+            self.filled = True
             # Pop strictly-worse episodes in eviction order until `ep` fits; undo if it never does.
             popped: list[tuple[float, int, Episode]] = []
             freed = 0
@@ -174,7 +189,7 @@ class ExpertHeap:
     def state(self) -> dict:
         """What a checkpoint keeps: every entry with its key and admission order (the eviction order), and the counters."""
         return {"admission": self.admission, "entries": [[ep, key, order] for key, order, ep in self._heap],
-                "admitted": self.admitted, "rejected": self.rejected, "evicted": self.evicted}
+                "admitted": self.admitted, "rejected": self.rejected, "evicted": self.evicted, "filled": self.filled}
 
     def restore(self, state: dict) -> None:
         """Refill an empty D_E from `state()`, keeping the eviction order."""
@@ -193,6 +208,8 @@ class ExpertHeap:
         self._transitions = total
         self._return_range = None
         self.admitted, self.rejected, self.evicted = int(state["admitted"]), int(state["rejected"]), int(state["evicted"])
+        # Checkpoints before `filled` was kept: an eviction shows D_E was full (a rejection may have been for length).
+        self.filled = bool(state.get("filled", self.evicted > 0))
 
     def gather(self, n: int, rng: np.random.Generator, out: Batch[np.ndarray], rows: slice | np.ndarray,
                rewards: bool) -> Drawn:

@@ -37,7 +37,7 @@ class Tables:
         self.fifo = OnlineFifo(cfg.online_capacity, spec.max_episode_steps, self.labeller)
         self.heap: ExpertHeap | None = None
         if self.algo.ranks_own_episodes:
-            self.heap = ExpertHeap(cfg.expert_capacity, cfg.expert_admission, self.labeller)
+            self.heap = ExpertHeap(cfg.expert_capacity, cfg.expert_admission, self.labeller, cfg.expert_refill)
         elif self.algo.needs_demos:
             demos = load_demos(Path(cfg.demos), spec)
             self.heap = ExpertHeap(sum(d.length for d in demos), watcher=self.labeller)

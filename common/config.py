@@ -25,6 +25,7 @@ from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, WEIGHTS_WIRE, valid
 _ENV_REWARD = [a.name for a in algorithms.ALGORITHMS.values() if a.uses_env_reward]
 GASIL_REWARD_FORMS = ("logit", "positive", "negative")  # r_D from the discriminator (learner.gasil)
 EXPERT_ADMISSIONS = ("return", "recent")  # what D_E keeps (buffer_service.expert_heap)
+EXPERT_REFILLS = ("better", "any")  # what may enter the room evictions leave in a full D_E (buffer_service.expert_heap)
 TANH_LOG_PROB_FORMS = ("exact", "official")  # log(1 - tanh^2) in the policy's log-probability (learner.sac)
 CRITIC_NORMS = ("none", "layer")  # a normalisation after each hidden layer of the critics (learner.sac)
 Q_TARGET_CLIPS = ("none", "bound")  # whether the TD target is clipped at the soft-Q bound (learner.sac.clip_target)
@@ -82,6 +83,11 @@ class Config:
     expert_capacity: int = _opt(50_000, SERVICE, "D_E size M in transitions (Table I: 5e4)")
     expert_admission: str = _opt("return", {"train", "buffer"}, "what D_E keeps: return: the best episodes by return (SILCR); "
                                  "recent: the latest episodes (a control without the ranking)", choices=EXPERT_ADMISSIONS)
+    expert_refill: str = _opt("better", {"train", "buffer"}, "once D_E has filled, which episode may take the room "
+                              "that evicting whole episodes leaves: better: only one whose return beats the lowest "
+                              "stored, so D_E's lowest return never falls (the official code's rule for its full "
+                              "buffer); any: any episode that fits, however low its return (runs recorded before "
+                              "this option; docs/algorithm.md)", choices=EXPERT_REFILLS, absent="any")
     batch_size: int = _opt(128, SERVICE, "transitions per update; SILCR takes half from each buffer (official: 64 + 64)")
     learning_starts: int = _opt(10_240, SERVICE, "no update until D_O holds more than this many transitions (official code)")
     samples_per_insert: float = _opt(1.0, SERVICE, "gradient updates per environment step (official: 1)")

@@ -120,6 +120,78 @@ def test_heap_keeps_top_m_under_random_stream():
     assert sorted([e.episode_return for e in heap.episodes()]) == pytest.approx(sorted(returns)[-10:], rel=1e-6)
 
 
+def test_full_heap_gives_the_room_evictions_leave_only_to_better_episodes():
+    def heap_after_a_gap(refill: str) -> ExpertHeap:
+        heap = ExpertHeap(capacity=30, refill=refill)
+        for i, r in enumerate([1.0, 2.0, 3.0]):
+            assert heap.offer(make_episode(10, ret=r, seq=i))
+        assert heap.offer(make_episode(5, ret=5.0, seq=3))  # no room: evicts the 10-step 1.0, leaving 5 free
+        assert len(heap) == 25 and heap.min_return == 2.0 and heap.filled
+        return heap
+
+    heap = heap_after_a_gap("better")
+    assert not heap.offer(make_episode(5, ret=0.5, seq=4))  # fits the gap, but the full D_E would refuse it
+    assert not heap.offer(make_episode(5, ret=2.0, seq=5))  # a tie with the lowest neither
+    assert heap.min_return == 2.0 and len(heap) == 25 and heap.rejected == 2
+    assert heap.offer(make_episode(5, ret=2.5, seq=6))  # better than the lowest: takes the gap, evicting nothing
+    assert len(heap) == 30 and heap.evicted == 1 and heap.min_return == 2.0
+
+    heap = heap_after_a_gap("any")  # runs recorded before the option: anything that fits enters
+    assert heap.offer(make_episode(5, ret=0.5, seq=4))
+    assert heap.min_return == 0.5 and len(heap) == 30
+
+
+def test_heap_before_it_first_fills_admits_whatever_fits():
+    heap = ExpertHeap(capacity=30)
+    for i, r in enumerate([5.0, 1.0, -3.0]):  # worse and worse, but there is room
+        assert heap.offer(make_episode(10, ret=r, seq=i))
+    assert not heap.filled and heap.min_return == -3.0
+
+
+@settings(max_examples=60, deadline=None)
+@given(st.lists(st.tuples(st.integers(1, 12), st.integers(-20, 20)), min_size=1, max_size=120))
+def test_full_heap_lowest_return_never_falls(offers):
+    """Once D_E has filled, its lowest return only rises (the official heap's property); with `refill="any"`
+    the same streams let it fall (checked over all examples in the next test)."""
+    heap = ExpertHeap(capacity=30)
+    lowest = None
+    for i, (n, ret) in enumerate(offers):
+        heap.offer(make_episode(n, ret=float(ret), seq=i))
+        if heap.filled:
+            assert lowest is None or heap.min_return >= lowest
+            lowest = heap.min_return
+
+
+def test_the_lowest_return_falls_without_the_refill_rule():
+    """The property above is not vacuous: on a random stream of variable-length episodes, `refill="any"` lets
+    D_E's lowest return fall after D_E has filled, and `refill="better"` never does."""
+    rng = np.random.default_rng(0)
+    falls = {"better": 0, "any": 0}
+    for refill in falls:
+        heap = ExpertHeap(capacity=30, refill=refill)
+        lowest = None
+        for i in range(2000):
+            heap.offer(make_episode(int(rng.integers(1, 13)), ret=float(rng.integers(-20, 21)), seq=i))
+            if heap.filled:
+                falls[refill] += lowest is not None and heap.min_return < lowest
+                lowest = heap.min_return
+    assert falls["better"] == 0 and falls["any"] > 0, falls
+
+
+def test_heap_state_keeps_whether_it_has_filled():
+    heap = ExpertHeap(capacity=20)
+    for i, r in enumerate([1.0, 2.0, 3.0]):
+        heap.offer(make_episode(10, ret=r, seq=i))
+    state = heap.state()
+    again = ExpertHeap(capacity=20)
+    again.restore(state)
+    assert again.filled
+    del state["filled"]  # a checkpoint written before the flag: an eviction shows D_E was full
+    older = ExpertHeap(capacity=20)
+    older.restore(state)
+    assert older.filled
+
+
 def test_heap_sampling_covers_stored_transitions():
     heap = ExpertHeap(capacity=30)
     for i, r in enumerate([1.0, 2.0, 3.0]):

@@ -29,6 +29,17 @@ def test_defaults_are_table_one_except_tau():
     assert cfg.run.startswith("Hopper-v5-silcr-")
 
 
+def test_d_e_refills_only_with_better_episodes_by_default_and_older_records_read_as_any(tmp_path):
+    from silcr.common.config import value_when_absent
+    from silcr.runs import load_run
+
+    assert _resolve([]).expert_refill == "better" and _resolve(["--expert-refill", "any"]).expert_refill == "any"
+    assert value_when_absent("expert_refill") == "any"  # what every run recorded before the option did
+    old = REPO / "results" / "five-tasks" / "runs" / "silcr_Hopper-v5_s0"  # recorded before the option
+    assert "expert_refill" not in tomllib.loads((old / "config.toml").read_text())
+    assert load_run(old).config["expert_refill"] == "any"
+
+
 def test_toml_then_command_line_precedence(tmp_path):
     f = tmp_path / "c.toml"
     f.write_text('env = "Walker2d-v5"\nactors = 3\nexpert-capacity = 20000\nhidden = [64, 64]\n')
