@@ -29,7 +29,7 @@ def test_defaults_are_table_one_except_tau():
     assert cfg.run.startswith("Hopper-v5-silcr-")
 
 
-def test_d_e_refills_only_with_better_episodes_by_default_and_older_records_read_as_any(tmp_path):
+def test_d_e_refills_only_with_better_episodes_by_default_and_older_records_read_as_any():
     from silcr.common.config import value_when_absent
     from silcr.runs import load_run
 
