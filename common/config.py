@@ -212,6 +212,12 @@ def value_when_absent(name: str) -> Any:
     return meta["absent"] if "absent" in meta else default_of(name)
 
 
+def absent_values() -> dict[str, Any]:
+    """Every option's `value_when_absent`: laid under a saved config (a run's config.toml, a model file's)
+    so that the keys it lacks read as what it ran with."""
+    return {name: value_when_absent(name) for name in FIELDS}
+
+
 def option_name(name: str) -> str:
     return "--" + name.replace("_", "-")
 

@@ -29,7 +29,7 @@ import numpy as np
 
 import silcr.model_file as model_file
 from silcr.common.algorithms import ALGORITHMS
-from silcr.common.config import FIELDS, Config, ConfigError, from_options, value_when_absent
+from silcr.common.config import FIELDS, Config, ConfigError, absent_values, from_options
 from silcr.training import DistributedTraining, InProcessTraining
 
 #: Options the constructor's own arguments and `learn` set; passing them as options is refused.
@@ -239,8 +239,7 @@ class Model:
             raise model_file.ModelFileError(f"{path} holds a {payload['algo']} model, not {cls.algo}: load it with "
                                             f"silcr.{other}.load")
         # A setting the file lacks ran as it did before the option existed (critics saved before LayerNorm was the default)
-        saved = {k: v for k, v in payload["config"].items() if k in FIELDS}
-        cfg = Config(**({k: value_when_absent(k) for k in FIELDS if k not in saved} | saved))
+        cfg = Config(**(absent_values() | {k: v for k, v in payload["config"].items() if k in FIELDS}))
         actors = 0 if cfg.single_process else cfg.actors
         spec = model_file.spec_of(payload["spec"])
         if env is not None:

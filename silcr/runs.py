@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from silcr.common.algorithms import ALGORITHM_OPTIONS, ALGORITHMS
-from silcr.common.config import Config, value_when_absent
+from silcr.common.config import Config, absent_values
 
 
 @dataclass
@@ -68,12 +68,6 @@ NOT_A_SETTING = {"run", "runs_dir", "seed", "resume", "connect", "listen", "zeno
 
 
 _DEFAULTS = Config(run="defaults").to_dict()
-
-
-def absent_values() -> dict:
-    """What a config.toml without a key meant: the behaviour the option kept when it was added
-    (`config.value_when_absent`), which stays right after its default changes."""
-    return {name: value_when_absent(name) for name in _DEFAULTS}
 
 
 def base_label(cfg: dict) -> str:
