@@ -106,7 +106,8 @@ def test_a_diverging_learner_is_counted_and_warned_about(tmp_path):
     paper's plain critics (the default LayerNorm critics with the clipped target stay under the bound here)."""
     t0 = time.monotonic()
     r = _train(tmp_path, "diverge", "--env", "Hopper-v5", "--hidden", "256", "256", "--tau", "1", "--lr", "0.003",
-               "--grad-clip", "0", "--critic-norm", "none", "--q-target-clip", "none", "--learning-starts", "1000", "--total-steps", "4000", "--eval-interval", "1000",
+               "--grad-clip", "0", "--critic-norm", "none", "--q-target-clip", "none", "--learning-starts", "1000",
+               "--total-steps", "4000", "--eval-interval", "1000",
                "--eval-episodes", "1", "--seed", "0")
     assert r.returncode == 0, r.stdout + r.stderr
     warnings = [line for line in r.stdout.splitlines() if "warning: the critics are diverging" in line]
