@@ -43,6 +43,7 @@ from typing import Any
 from silcr.common.commands import command, option_args
 from silcr.common.config import FIELDS, ConfigError, from_options
 from silcr.common.lifecycle import caller_signal_handlers, interrupt_on_ctrl_c
+from silcr.runs import wall_seconds
 
 DONE_MARKER = "sweep-done.json"
 # Set per cell by the sweep itself, so an experiment file may not set them.
@@ -181,6 +182,16 @@ def _port_free(port: int) -> bool:
     return True
 
 
+def _run_minutes(run_dir: Path) -> float | None:
+    """The run's wall time in minutes with every resumed stretch added (progress.csv's `time`)."""
+    try:
+        with open(run_dir / "progress.csv", newline="") as f:
+            seconds = wall_seconds(list(csv.DictReader(f)))
+    except OSError:
+        return None
+    return None if seconds is None else seconds / 60
+
+
 class _Running:
     def __init__(self, cell: Cell, proc: subprocess.Popen, port: int, started: float, log) -> None:
         self.cell, self.proc, self.port, self.started, self.log = cell, proc, port, started, log
@@ -256,10 +267,13 @@ def _run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: 
                 minutes = (time.monotonic() - r.started) / 60
                 if rc == 0:
                     finished += 1
+                    total = _run_minutes(runs_dir / r.cell.name)
+                    # `minutes` is this stretch; a resumed cell's compute is the sum over its stretches.
                     marker = {"cell": r.cell.name, "variant": r.cell.variant, "task": r.cell.task, "seed": r.cell.seed,
-                              "finished_at": time.time(), "minutes": minutes}
+                              "finished_at": time.time(), "minutes": minutes, "minutes_all_stretches": total}
                     (runs_dir / r.cell.name / DONE_MARKER).write_text(json.dumps(marker))
-                    print(f"[{finished}/{len(cells)}] done   {r.cell.name} in {minutes:.1f} min", flush=True)
+                    spent = f" ({total:.1f} min over every stretch)" if total is not None and total > minutes + 1 else ""
+                    print(f"[{finished}/{len(cells)}] done   {r.cell.name} in {minutes:.1f} min{spent}", flush=True)
                 else:
                     failed.append(r.cell.name)
                     print(f"[{finished}/{len(cells)}] FAILED {r.cell.name} (exit {rc}); see {runs_dir / r.cell.name / 'sweep.log'}",

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import csv
+import json
 import os
 import signal
 import subprocess
@@ -13,6 +14,7 @@ import pytest
 
 from silcr.deploy.sweep import ExperimentError, cell_state, cells_of, load_experiment, parse_seeds, selected_cells
 from silcr.learner.checkpoint import load_checkpoint
+from silcr.runs import wall_seconds
 from tests.helpers import REPO, Processes, free_port, wait_for
 
 EXPERIMENTS = sorted((REPO / "experiments").glob("*.toml"))
@@ -163,6 +165,9 @@ def test_an_interrupted_cell_resumes_from_its_checkpoint(tmp_path):
     updates = [int(r["updates"]) for r in rows]
     assert updates == sorted(updates) and updates[-1] > stopped_at
     assert int(rows[-1]["env_steps"]) >= 4000
+    # The marker's compute is the whole run's, as `silcr plot` counts it (every stretch in progress.csv).
+    marker = json.loads((cell_dir / "sweep-done.json").read_text())
+    assert marker["minutes_all_stretches"] == pytest.approx(wall_seconds(rows) / 60), marker
     # The resumed run did not collect the first part again: about one update per env step overall.
     assert load_checkpoint(cell_dir / "checkpoints" / "learner.pt")["counters"]["updates"] < 4000 + 600
 
