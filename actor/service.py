@@ -17,7 +17,7 @@ import numpy as np
 
 from silcr.common import protocol as P
 from silcr.common import seeds
-from silcr.common.clients import EpisodeWriter, WeightsClient, ZenohEpisodeWriter, ZenohWeightsClient
+from silcr.common.clients import EpisodeWriter, Presence, WeightsClient, ZenohEpisodeWriter, ZenohWeightsClient
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec, make_env
 from silcr.common.lifecycle import StopFlag
@@ -118,6 +118,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         writer = ZenohEpisodeWriter(role.session, role.keys, stop)
         weights = ZenohWeightsClient(role.session, role.keys, policy_factory(role.spec),
                                      random_initial_weights(cfg, role.spec, seed), cfg.weights_wait, stop)
+        Presence.buffer(role.session, role.keys, stop)  # logs when the buffer goes out of reach and comes back
         actor = Actor(cfg, role.spec, cfg.actor_id, writer, weights)
         log.info("actor %d on %s with %d env(s), seed %d, policy version %d", cfg.actor_id, cfg.env, len(actor.envs),
                  seed, weights.version)

@@ -5,7 +5,8 @@
 run, declares the role's liveliness token (`silcr/<run>/alive/<role>[/<id>]`) and its
 stats publisher (every message carries `shutdown_rejections`: malformed shutdown
 messages, ignored; with `--health-file`, each is followed by the heartbeat `silcr health`
-reads: common/health.py), and gives the role its stats schedule. On the way out it withdraws
+reads: common/health.py), logs when the session loses its last link and regains one
+(common/link_watch.py), and gives the role its stats schedule. On the way out it withdraws
 the token, so the others see the role leave before its session closes.
 """
 
@@ -23,6 +24,7 @@ from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.health import Heartbeat
 from silcr.common.lifecycle import StopFlag
+from silcr.common.link_watch import LinkWatch
 from silcr.common.schedule import Every
 from silcr.common.zenoh_session import open_session, session_config
 
@@ -47,9 +49,11 @@ def role_session(cfg: Config, stop: StopFlag, role: str, ident: int | None = Non
         token_key = keys.alive(role, ident)
         token = session.liveliness().declare_token(token_key)
         beat = Heartbeat(cfg.health_file, cfg.run, role, token_key).beat if cfg.health_file else None
+        links = LinkWatch(session, stop, role if ident is None else f"{role} {ident}")
         try:
             yield RoleSession(spec, keys, session,
                               StatsPublisher(session, keys.stats(role, ident), shutdown.stats, on_put=beat),
                               Every(cfg.stats_interval))
         finally:
+            links.close()
             token.undeclare()

@@ -173,6 +173,10 @@ def test_a_killed_buffer_comes_back_from_its_checkpoint_and_the_learner_resumes(
     assert "buffer exited with code -9; restarting it (1/5)" in r.procs.log("train")
     buffer_log = (r.run_dir / "logs" / "buffer.log").read_text()
     assert "restored D_O" in buffer_log
+    # The actors said that the buffer went out of reach, and when it was back.
+    actor_log = (r.run_dir / "logs" / "actor-0.log").read_text()
+    left = actor_log.find("WARNING buffer service left (a lost link or a stopped buffer")
+    assert 0 <= left < actor_log.find("buffer service joined", left), actor_log[-2000:]
     assert learner["finished"] is True
     assert r.procs.orphans == []
 
