@@ -58,7 +58,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--table", default=None, help="also write the Markdown summary (final and best return) to this file")
             p.add_argument("--title", default="", help="figure title")
             p.add_argument("--metric", default="eval_return", help="progress.csv column to plot against env steps "
-                           "(default: eval_return; e.g. expert_min_return, q_max, alpha)")
+                           "(default: eval_return; e.g. expert_min_return, q_max, alpha), or one over another: "
+                           "q_max/q_bound")
             p.add_argument("--logy", action="store_true", help="log y axis, with the median and the range over seeds instead of mean +- std "
                            "(for q_max across diverging runs)")
             p.add_argument("--stats", choices=["rliable"], default=None, help="also few-seed statistics of the final return "

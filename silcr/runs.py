@@ -88,12 +88,16 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
         raise ValueError(f"{path} is not a run directory (missing {Path(e.filename).name})") from None
     except (tomllib.TOMLDecodeError, csv.Error, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: unreadable run files ({e})") from None
-    rows = [r for r in all_rows if r.get(metric) not in (None, "")]
+    # `a/b` is one column over another, e.g. q_max/q_bound: how close the critics are to the soft-Q bound.
+    columns = metric.split("/") if metric.count("/") == 1 else [metric]
+    rows = [r for r in all_rows if all(r.get(c) not in (None, "") for c in columns)]
     if not rows:
         raise ValueError(f"{path}: progress.csv has no values of {metric} yet")
     try:
         steps = np.array([float(r["env_steps"]) for r in rows])
-        values = np.array([float(r[metric]) for r in rows])
+        values = np.array([float(r[columns[0]]) for r in rows])
+        if len(columns) == 2:
+            values = values / np.array([float(r[columns[1]]) for r in rows])
     except (KeyError, ValueError) as e:
         raise ValueError(f"{path}: progress.csv lacks env_steps/{metric} numbers ({e})") from None
     # A resumed run goes on from its last checkpoint, so its rows can step back: the rows

@@ -198,6 +198,18 @@ def test_a_resumed_run_plots_the_rows_written_after_the_resume(tmp_path):
     assert list(run.steps) == [0, 1000, 2000, 2500, 3000, 4000, 4000] and list(run.returns) == [1, 2, 3, 4, 5, 6, 7]
 
 
+def test_a_metric_can_be_one_column_over_another(tmp_path):
+    """`--metric q_max/q_bound`: the critics' distance to the soft-Q bound; rows missing either are left out."""
+    d = _fake_run(tmp_path, "Humanoid-v5", "silcr", 0, [0, 1000, 2000], [1, 2, 3])
+    text = (d / "progress.csv").read_text().splitlines()
+    extra = [",q_max,q_bound", ",,", ",50,100", ",120,100"]
+    (d / "progress.csv").write_text("\n".join(row + e for row, e in zip(text, extra)) + "\n")
+    run = load_run(d, metric="q_max/q_bound")
+    assert list(run.steps) == [1000, 2000] and list(run.returns) == [0.5, 1.2]
+    with pytest.raises(ValueError, match="no values of q_max/alpha"):
+        load_run(d, metric="q_max/alpha")
+
+
 def test_the_table_adds_each_resumed_stretch_to_a_run_s_wall_time(tmp_path):
     """progress.csv's time restarts at zero when a run resumes: 1,800 s, then 900 s more after the
     resume (rows it wrote again included) is 0.75 h, not the last row's 0.25 h."""
