@@ -118,7 +118,8 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         writer = ZenohEpisodeWriter(role.session, role.keys, stop)
         weights = ZenohWeightsClient(role.session, role.keys, policy_factory(role.spec),
                                      random_initial_weights(cfg, role.spec, seed), cfg.weights_wait, stop)
-        Presence.buffer(role.session, role.keys, stop)  # logs when the buffer goes out of reach and comes back
+        # Only logs (when the buffer leaves and comes back); a blocked actor publishes no stats to say it.
+        Presence.buffer(role.session, role.keys, stop)
         actor = Actor(cfg, role.spec, cfg.actor_id, writer, weights)
         log.info("actor %d on %s with %d env(s), seed %d, policy version %d", cfg.actor_id, cfg.env, len(actor.envs),
                  seed, weights.version)

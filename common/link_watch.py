@@ -38,7 +38,6 @@ class LinkWatch:
     def __init__(self, session: zenoh.Session, stop: StopFlag, name: str) -> None:
         self._session, self._stop, self._name = session, stop, name
         self._done = threading.Event()
-        self.outages = 0
         self._thread = threading.Thread(target=self._run, name="silcr-link-watch", daemon=True)
         self._thread.start()
 
@@ -49,7 +48,6 @@ class LinkWatch:
             now_linked = linked(self._session)
             if was_linked and not now_linked and not self._stop.is_set():
                 lost_at = time.monotonic()
-                self.outages += 1
                 log.warning("%s lost its last Zenoh link (router or peers): nothing reaches it or leaves it until "
                             "Zenoh reconnects", self._name)
             elif now_linked and not was_linked and lost_at is not None:
