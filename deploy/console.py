@@ -5,11 +5,12 @@ and `deploy.single_process`.
 
 from __future__ import annotations
 
-import csv
 import sys
 import time
 from pathlib import Path
 from typing import Any
+
+from silcr.learner.progress import read_rows
 
 
 def format_return(x: float) -> str:
@@ -21,12 +22,11 @@ def format_return(x: float) -> str:
 def done_message(run_dir: Path) -> str:
     """The closing line of a finished run: its last evaluation (the learner's final one) and where the records are."""
     last = ""
+    rows = read_rows(run_dir)
     try:
-        with open(run_dir / "progress.csv", newline="") as f:
-            rows = list(csv.DictReader(f))
         if rows and rows[-1].get("eval_return"):
             last = f" final evaluation {format_return(float(rows[-1]['eval_return']))} at {rows[-1]['env_steps']} env steps;"
-    except (OSError, ValueError, csv.Error):
+    except ValueError:
         pass  # the line still says where to look
     return (f"silcr train: done.{last} progress: {run_dir / 'progress.csv'}; "
             f"TensorBoard: tensorboard --logdir {run_dir / 'tb'}")

@@ -28,7 +28,6 @@ nothing starts (a sweep never silently continues or overwrites a half-done run).
 from __future__ import annotations
 
 import argparse
-import csv
 import json
 import os
 import signal
@@ -43,6 +42,7 @@ from typing import Any
 from silcr.common.commands import command, option_args
 from silcr.common.config import FIELDS, ConfigError, from_options
 from silcr.common.lifecycle import caller_signal_handlers, interrupt_on_ctrl_c
+from silcr.learner.progress import read_rows
 from silcr.runs import wall_seconds
 
 DONE_MARKER = "sweep-done.json"
@@ -149,8 +149,7 @@ def cell_detail(cell: Cell, run_dir: Path, state: str) -> str:
     if state == "partial":
         total = int(cell.options.get("total_steps", FIELDS["total_steps"].default))
         try:
-            with open(run_dir / "progress.csv", newline="") as f:
-                last = list(csv.DictReader(f))[-1]
+            last = read_rows(run_dir)[-1]
             parts.append(f"{int(float(last['env_steps'])):,} of {total:,} env steps")
         except (OSError, IndexError, KeyError, ValueError, TypeError):
             parts.append("no progress.csv rows yet")
@@ -184,11 +183,7 @@ def _port_free(port: int) -> bool:
 
 def _run_minutes(run_dir: Path) -> float | None:
     """The run's wall time in minutes with every resumed stretch added (progress.csv's `time`)."""
-    try:
-        with open(run_dir / "progress.csv", newline="") as f:
-            seconds = wall_seconds(list(csv.DictReader(f)))
-    except OSError:
-        return None
+    seconds = wall_seconds(read_rows(run_dir))
     return None if seconds is None else seconds / 60
 
 

@@ -36,6 +36,15 @@ PROGRESS_COLUMNS = [
 ]
 
 
+def read_rows(run_dir: Path) -> list[dict[str, str]]:
+    """The rows of a run's progress.csv so far, as written (strings); none when it is missing or unreadable."""
+    try:
+        with open(run_dir / "progress.csv", newline="") as f:
+            return list(csv.DictReader(f))
+    except (OSError, csv.Error):
+        return []
+
+
 class ProgressLog:
     def __init__(self, run_dir: Path, resume: bool = False) -> None:
         from torch.utils.tensorboard import SummaryWriter  # imported late: it is slow to import

@@ -16,12 +16,10 @@ from __future__ import annotations
 
 import _thread
 import contextlib
-import csv
 import io
 import logging
 import signal
 import threading
-from pathlib import Path
 from typing import Any, Callable
 
 from silcr.common import protocol as P
@@ -146,13 +144,14 @@ class DistributedTraining:
         from silcr.learner.checkpoint import load_checkpoint
         from silcr.learner.evaluate import weights_from_checkpoint
 
-        progress = self.cfg.run_dir / "progress.csv"
+        from silcr.learner.progress import read_rows
+
         stopped, done = threading.Event(), threading.Event()
 
         def follow() -> None:
-            seen = len(_rows(progress))
+            seen = len(read_rows(self.cfg.run_dir))
             while not done.wait(0.5):
-                rows = _rows(progress)
+                rows = read_rows(self.cfg.run_dir)
                 for row in rows[seen:]:
                     if on_row(row) is False and not stopped.is_set():
                         stopped.set()
@@ -186,9 +185,3 @@ class DistributedTraining:
         return weights_from_checkpoint(final)[0], int(final["counters"]["env_steps"])
 
 
-def _rows(path: Path) -> list[dict[str, str]]:
-    try:
-        with open(path, newline="") as f:
-            return list(csv.DictReader(f))
-    except (OSError, csv.Error):
-        return []
