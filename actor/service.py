@@ -3,8 +3,8 @@
 `Actor` is the rollout alone: its envs and episodes in progress, stepped one batched
 forward pass at a time, writing finished episodes through an `EpisodeWriter` and
 acting with a `WeightsClient`'s policy (silcr.common.clients). `run_actor` is the
-process around it over Zenoh: pause while the buffer's rate limiter says actors are
-ahead, take new weights every `--weights-poll-steps` steps, publish stats.
+process around it over Zenoh: wait while no buffer service listens, pause while the
+buffer's rate limiter says actors are ahead, take new weights every `--weights-poll-steps` steps, publish stats.
 `silcr train --single-process` steps the same `Actor` with in-process clients.
 """
 
@@ -118,7 +118,7 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         writer = ZenohEpisodeWriter(role.session, role.keys, stop)
         weights = ZenohWeightsClient(role.session, role.keys, policy_factory(role.spec),
                                      random_initial_weights(cfg, role.spec, seed), cfg.weights_wait, stop)
-        # Only logs (when the buffer leaves and comes back); a blocked actor publishes no stats to say it.
+        # Logs when the buffer leaves and comes back (its stats say it too: `waiting_for_buffer`).
         Presence.buffer(role.session, role.keys, stop)
         actor = Actor(cfg, role.spec, cfg.actor_id, writer, weights)
         log.info("actor %d on %s with %d env(s), seed %d, policy version %d", cfg.actor_id, cfg.env, len(actor.envs),
@@ -126,8 +126,13 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
         paused_s = 0.0
         last_poll = 0
         while not stop.is_set():
+            # Steps taken while no buffer listens would end in an episode held until one does: wait
+            # before stepping instead, awake (stats, weights) rather than blocked in a write.
+            waiting = not writer.buffer_listening()
             paused = writer.paused()
-            if paused:
+            if waiting:
+                writer.wait_for_buffer(PAUSED_POLL_S)
+            elif paused:
                 # Back at once when the buffer says so; otherwise awake every PAUSED_POLL_S
                 # to take newer weights and publish stats.
                 t0 = time.monotonic()
@@ -135,12 +140,13 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
                 paused_s += time.monotonic() - t0
             elif not actor.step():
                 break
-            if paused or actor.steps - last_poll >= cfg.weights_poll_steps:
-                # Paused actors keep polling, so they resume with the newest policy.
+            if waiting or paused or actor.steps - last_poll >= cfg.weights_poll_steps:
+                # Waiting actors keep polling, so they go on with the newest policy.
                 last_poll = actor.steps
                 weights.update()
             if role.stats_due.due():
-                role.stats.put({"time": time.time(), "paused": paused, "paused_s": paused_s} | actor.stats())
+                role.stats.put({"time": time.time(), "paused": paused, "paused_s": paused_s,
+                                "waiting_for_buffer": waiting} | actor.stats())
         log.info("actor %d stopping (%s): %d episodes, %d steps", cfg.actor_id, stop.reason, actor.episodes, actor.steps)
     actor.close()
     return 0

@@ -80,6 +80,8 @@ def _table(snap: dict[str, Any]):
             t.add_row("learner", k, _fmt(lr[k]))
     for aid, a in sorted(snap["actors"].items()):
         t.add_row(f"actor {aid}", "episodes / steps / version", f"{a.get('episodes')} / {a.get('steps')} / {a.get('policy_version')}")
+        if a.get("waiting_for_buffer") or a.get("paused"):
+            t.add_row(f"actor {aid}", "state", "waiting for the buffer" if a.get("waiting_for_buffer") else "paused")
     return t
 
 

@@ -4,12 +4,14 @@ from __future__ import annotations
 
 import os
 import signal
+import subprocess
+import sys
 
 import pytest
 import zenoh
 
 from silcr.common import protocol as P
-from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
+from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, wait_for
 
 RUN = "itest-system"
 KEYS = P.Keys(RUN)
@@ -109,3 +111,37 @@ def test_sigterm_stops_every_component_cleanly(system):
             continue  # killed above
         assert p.wait(30) == 0, f"{name} exited with {p.returncode}:\n{procs.log(name)[-2000:]}"
     assert os.path.exists  # nothing left running is checked by the fixture's stop_all
+
+
+def test_an_actor_with_no_buffer_waits_awake_and_says_so(tmp_path):
+    """With no buffer service listening an actor takes no steps (an episode it finished would have nowhere to
+    go), yet goes on publishing its stats, `waiting_for_buffer` true; once a buffer is there it steps and
+    its episodes arrive. Before, it stepped to its first episode's end and blocked there, publishing nothing."""
+    port = free_port()
+    procs = Processes(tmp_path)
+    ep = f"tcp/127.0.0.1:{port}"
+    run = "itest-no-buffer"
+    common = ["--run", run, "--env", "InvertedPendulum-v5", "--stats-interval", "0.2"]
+    keys = P.Keys(run)
+    procs.start("router", "router", "--listen", ep)
+    procs.start("actor-0", "actor", *common, *NETS, "--connect", ep, "--actor-id", "0", "--weights-wait", "0")
+    session = client_when_up(port)
+    try:
+        stats = LatestJson(session, keys.stats_all)
+        actor = keys.stats_actor(0)
+        wait_for(lambda: len([m for m in stats.history.get(actor, []) if m.get("waiting_for_buffer")]) >= 5, 60,
+                 f"actor stats saying it waits for the buffer\n{procs.log('actor-0')[-2000:]}")
+        assert stats.get(actor)["steps"] == 0 and stats.get(actor)["waited_for_buffer_s"] > 0
+        mon = subprocess.run([sys.executable, "-m", "silcr.cli", "monitor", "--run", run, "--connect", ep, "--once",
+                              "--timeout", "2"], capture_output=True, text=True, timeout=60, cwd=REPO,
+                             env={**os.environ, "COLUMNS": "200"})
+        assert mon.returncode == 0 and "waiting for the buffer" in mon.stdout, mon.stdout + mon.stderr
+        procs.start("buffer", "buffer", *common, "--connect", ep)
+        wait_for(lambda: (stats.get(keys.stats_buffer) or {}).get("episodes_received", 0) > 0, 60,
+                 f"episodes at the buffer\n{procs.log('actor-0')[-2000:]}")
+        wait_for(lambda: stats.get(actor)["steps"] > 0 and stats.get(actor)["waiting_for_buffer"] is False, 30,
+                 "the actor's stats to say it steps")
+    finally:
+        session.close()
+        procs.stop_all()
+    assert procs.orphans == []
