@@ -4,7 +4,9 @@
 guards the network and the checkpoints), rejects a repeated one (a sender's `seq` at or below its
 last), counts the episodes a gap in a sender's sequence numbers says are missing, stores the
 episode in D_O and D_E (`tables.Tables.add`) and tells the rate limiter. Every rejection is
-counted by reason and published (`stats`); the counts save and restore with the part.
+counted by reason and published (`stats`); the counts save and restore with the part. The last
+`ROLLOUT_WINDOW` episodes' returns and lengths give the actors' own returns (`rollout_meta`),
+what the policy's sampled actions achieve, beside the learner's evaluations.
 """
 
 from __future__ import annotations
@@ -20,6 +22,8 @@ from .tables import Tables
 #: A sender is an (actor id, incarnation); the table of their last sequence numbers forgets the
 #: oldest beyond this many, so it stays bounded however many actors come and go.
 MAX_SENDERS = 65_536
+#: Episodes in the rollout return's mean (Stable-Baselines3's `rollout/ep_rew_mean` takes 100 too).
+ROLLOUT_WINDOW = 100
 
 
 class Intake:
@@ -37,6 +41,7 @@ class Intake:
         # The updates served when the latest episode arrived (not checkpointed: counted from each start),
         # so that how many the learner made on tables that no longer changed is known at the end.
         self.samples_at_last_episode = 0
+        self.rollouts: collections.deque[tuple[float, int]] = collections.deque(maxlen=ROLLOUT_WINDOW)
 
     def ingest(self, payload: bytes) -> P.Episode:
         """Store one episode message; raise `ProtocolError` (and count it) if it is rejected."""
@@ -74,16 +79,27 @@ class Intake:
         self.episodes_received += 1
         self.transitions_received += ep.length
         self.last_episode_version = max(self.last_episode_version, ep.policy_version)
+        self.rollouts.append((ep.episode_return, ep.length))
+
+    def rollout_meta(self) -> dict[str, Any]:
+        """The mean return and length of the last `ROLLOUT_WINDOW` episodes received (None before the first)."""
+        n = len(self.rollouts)
+        return {"rollout_return": sum(r for r, _ in self.rollouts) / n if n else None,
+                "rollout_length": sum(length for _, length in self.rollouts) / n if n else None}
 
     def state(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.COUNTERS} | {
-            "rejections": dict(self.rejections), "last_seq": [[a, inc, seq] for (a, inc), seq in self.last_seq.items()]}
+            "rejections": dict(self.rejections), "last_seq": [[a, inc, seq] for (a, inc), seq in self.last_seq.items()],
+            "rollouts": [list(r) for r in self.rollouts]}
 
     def restore(self, state: dict[str, Any]) -> None:
         for name in self.COUNTERS:
             setattr(self, name, int(state[name]))
         self.rejections = collections.Counter(state["rejections"])
         self.last_seq = {(int(a), int(inc)): int(seq) for a, inc, seq in state["last_seq"]}
+        # Checkpoints older than the rollout columns hold none: the mean starts again from the next episode.
+        self.rollouts.clear()
+        self.rollouts.extend((float(r), int(length)) for r, length in state.get("rollouts", []))
 
     def stats(self) -> dict[str, Any]:
         return {
@@ -94,4 +110,4 @@ class Intake:
             "rejections": dict(self.rejections),
             "latest_episode_policy_version": self.last_episode_version,
             "updates_since_last_episode": self.limiter.samples - self.samples_at_last_episode,
-        }
+        } | self.rollout_meta()

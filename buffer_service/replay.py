@@ -100,10 +100,10 @@ class ReplayState:
 
     def meta(self) -> dict[str, Any]:
         """What every reply says of the buffer: its algorithm (the learner checks it runs the same), the
-        transitions received, and D_E."""
+        transitions received, D_E, and the actors' recent returns."""
         return {"algo": self.algo.name, "env_steps": self.intake.transitions_received,
                 "episodes_received": self.intake.episodes_received,
-                "online_transitions": len(self.fifo)} | self.tables.expert_meta()
+                "online_transitions": len(self.fifo)} | self.tables.expert_meta() | self.intake.rollout_meta()
 
     # -- checkpoints (`snapshot.Checkpointed`) -------------------------------------------------
     def identity(self) -> dict[str, str]:

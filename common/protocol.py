@@ -632,7 +632,7 @@ class BatchReply:
         return _pack(msg)
 
     #: meta numbers the learner uses, and what they must be (the rest is informational)
-    META_RETURNS = ("expert_min_return", "expert_max_return")
+    META_RETURNS = ("expert_min_return", "expert_max_return", "rollout_return", "rollout_length")
 
     @classmethod
     def decode(cls, payload: bytes) -> "BatchReply":

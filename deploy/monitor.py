@@ -68,7 +68,8 @@ def _table(snap: dict[str, Any]):
     t.add_column("value", justify="right")
     b = snap["buffer"] or {}
     for k in ("transitions_received", "episodes_received", "episodes_rejected", "online_transitions", "expert_transitions",
-              "expert_episodes", "expert_min_return", "expert_max_return", "batches_served", "samples_per_insert",
+              "expert_episodes", "expert_min_return", "expert_max_return", "rollout_return", "rollout_length",
+              "batches_served", "samples_per_insert",
               "actors_alive", "actors_paused"):
         if k in b:
             t.add_row("buffer", k, _fmt(b[k]))

@@ -209,3 +209,4 @@ class Bookkeeping:
         if self.updates:
             keys = [*self.update.stat_names(), "updates_per_s"]
             self.evaluations.scalars({f"train/{k}": stats[k] for k in keys if stats.get(k) is not None}, self.env_steps)
+        self.evaluations.rollout_scalars(self.buffer_meta, self.env_steps)

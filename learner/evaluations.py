@@ -21,7 +21,7 @@ from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 
 from .evaluate import evaluate
-from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, GASIL_COLUMNS, ProgressLog
+from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, GASIL_COLUMNS, ROLLOUT_COLUMNS, ProgressLog
 
 log = logging.getLogger("learner")
 
@@ -67,7 +67,7 @@ class Evaluations:
             "critic_loss": losses.get("critic_loss", float("nan")),
             "actor_loss": losses.get("actor_loss", float("nan")),
             **{k: losses.get(k, float("nan")) for k in DIVERGENCE_COLUMNS + GASIL_COLUMNS},
-            **{k: buffer_meta.get(k) for k in EXPERT_COLUMNS},
+            **{k: buffer_meta.get(k) for k in EXPERT_COLUMNS + ROLLOUT_COLUMNS},
             "eval_success": "" if success is None else success,
             "q_target_clipped": losses.get("q_target_clipped", float("nan")),
         }
@@ -78,6 +78,11 @@ class Evaluations:
 
     def scalars(self, values: dict[str, float], step: int) -> None:
         self.progress.scalars(values, step)
+
+    def rollout_scalars(self, buffer_meta: dict[str, Any], step: int) -> None:
+        """The actors' own episodes (their sampled actions), under Stable-Baselines3's TensorBoard heading."""
+        self.scalars({f"rollout/{k.removeprefix('rollout_')}": v for k in ROLLOUT_COLUMNS
+                      if (v := buffer_meta.get(k)) is not None}, step)
 
     def close(self) -> None:
         self.progress.close()

@@ -14,6 +14,9 @@ DIVERGENCE_COLUMNS = ["q_mean", "q_max", "target_q_mean", "log_pi_mean", "q_boun
 GASIL_COLUMNS = ["disc_loss", "disc_acc_expert", "disc_acc_policy", "gasil_reward_mean"]
 #: D_E as the buffer service last described it (empty for plain SAC).
 EXPERT_COLUMNS = ["expert_transitions", "expert_episodes", "expert_min_return", "expert_max_return"]
+#: The mean return and length of the last 100 episodes the actors finished (their sampled actions; the
+#: reward as the actors' env pays it), as the buffer service last described them.
+ROLLOUT_COLUMNS = ["rollout_return", "rollout_length"]
 
 PROGRESS_COLUMNS = [
     "time",
@@ -33,6 +36,7 @@ PROGRESS_COLUMNS = [
     "checkpoints_failed",  # learner checkpoints that could not be written (silcr 0.4)
     "eval_success",  # share of evaluation episodes that reached the goal; empty for tasks without one (silcr 0.5)
     "q_target_clipped",  # share of the last update's TD targets cut at the soft-Q bound (--q-target-clip bound)
+    *ROLLOUT_COLUMNS,
 ]
 
 

@@ -216,3 +216,29 @@ def test_a_version_2_checkpoint_loads_into_the_parts(tmp_path, spec):
     assert set(snapshot.take(again).header["state"]) == {"tables", "intake", "sampler", "limiter"}
     assert {k: v for k, v in again.stats().items() if k not in ("time", "uptime_s")} == \
         {k: v for k, v in back.stats().items() if k not in ("time", "uptime_s")}
+
+
+def test_the_rollout_return_is_the_mean_of_the_last_100_episodes_and_survives_a_restart(tmp_path, spec):
+    """`rollout_return` / `rollout_length` (progress.csv, stats, every reply's meta): the actors' own last 100
+    episodes, not all of them and not D_E's; a restart from a checkpoint goes on with the same window."""
+    state = _state(spec)
+    assert state.meta()["rollout_return"] is None and state.stats()["rollout_length"] is None
+    for i in range(150):
+        state.ingest(make_episode(5 + i % 3, ret=float(i), seq=i, start=i * 100).encode())
+    last = range(50, 150)
+    meta = state.meta()
+    assert meta["rollout_return"] == pytest.approx(sum(last) / 100)
+    assert meta["rollout_length"] == pytest.approx(sum(5 + i % 3 for i in last) / 100)
+    reply = P.BatchReply.decode(state.answer(P.SampleRequest(1, 16).encode()).encode())
+    assert reply.meta["rollout_return"] == meta["rollout_return"]
+    snapshot.write(tmp_path / "buffer.ckpt", snapshot.take(state))
+    back = _state(spec)
+    snapshot.restore(tmp_path / "buffer.ckpt", back)
+    assert back.meta()["rollout_return"] == meta["rollout_return"]
+    for b in (state, back):
+        b.ingest(make_episode(5, ret=1000.0, seq=150, start=0).encode())
+    assert back.meta()["rollout_return"] == state.meta()["rollout_return"] == pytest.approx((sum(range(51, 150)) + 1000) / 100)
+    # A non-finite mean in a reply is refused where the learner decodes it, as D_E's returns are.
+    bad = P.BatchReply("not_ready", {"env_steps": 1, "rollout_return": float("nan")}, reason="warmup")
+    with pytest.raises(P.ProtocolError, match="rollout_return"):
+        P.BatchReply.decode(bad.encode())

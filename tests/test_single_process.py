@@ -45,6 +45,12 @@ def test_the_same_seed_gives_the_same_progress_csv(tmp_path):
     assert [r["eval_return"] for r in runs["other-seed"]] != [r["eval_return"] for r in a]
     assert int(a[-1]["updates"]) >= 2500 and float(a[-1]["q_mean"]) != 0.0
     assert all(r["q_bound_exceeded"] == "0" for r in a)  # a healthy run: the divergence counter stays at 0
+    # The actors' own returns: InvertedPendulum-v5 pays 1 a step but none for the step that falls (summed at the
+    # end by the episodic reward), so each row's mean return of the last 100 episodes is their mean length less
+    # the share that fell (all, this early); it moves as the policy learns.
+    rollouts = [(float(r["rollout_return"]), float(r["rollout_length"])) for r in a if r["rollout_return"]]
+    assert len(rollouts) >= len(a) - 1 and all(length - 1 <= ret <= length and ret > 0 for ret, length in rollouts)
+    assert len({ret for ret, _ in rollouts}) > 1
 
 
 def test_ctrl_c_leaves_checkpoints_and_resume_finishes_the_run(tmp_path):

@@ -92,6 +92,7 @@ def test_train_runs_to_the_budget_and_ends_cleanly(tmp_path):
     assert {"time", "env_steps", "updates", "policy_version", "eval_return"} <= rows[0].keys()
     assert len(rows) >= 3
     assert int(rows[-1]["env_steps"]) >= 3000 and int(rows[-1]["updates"]) >= 2500 - 500
+    assert float(rows[-1]["rollout_length"]) > 0 and rows[-1]["rollout_return"]  # the actors' episodes, by the buffer
     versions = [int(row["policy_version"]) for row in rows]
     assert versions == sorted(versions) and versions[-1] > 0
     ckpt = load_checkpoint(run_dir / "checkpoints" / "learner.pt")
