@@ -4,7 +4,8 @@
 forward pass at a time, writing finished episodes through an `EpisodeWriter` and
 acting with a `WeightsClient`'s policy (silcr.common.clients). `run_actor` is the
 process around it over Zenoh: wait while no buffer service listens, pause while the
-buffer's rate limiter says actors are ahead, take new weights every `--weights-poll-steps` steps, publish stats.
+buffer's rate limiter says actors are ahead, take new weights every `--weights-poll-steps`
+steps, publish stats.
 `silcr train --single-process` steps the same `Actor` with in-process clients.
 """
 
