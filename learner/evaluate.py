@@ -52,6 +52,20 @@ def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video:
 
     With `video`, the first episode is rendered off-screen and written as MP4.
     """
+    return summary(evaluation_episodes(weights, spec, episodes, seed, video, deterministic), spec)
+
+
+def summary(eps: list[P.Episode], spec: EnvSpec) -> Evaluation:
+    """Mean and std of the dense return, mean length and the goal's share over `eps`."""
+    returns = [e.episode_return for e in eps]
+    goals = [spec.reached_goal(e) for e in eps]
+    success = None if None in goals else float(np.mean(goals))
+    return Evaluation(float(np.mean(returns)), float(np.std(returns)), float(np.mean([e.length for e in eps])), success)
+
+
+def evaluation_episodes(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None,
+                        deterministic: bool = True) -> list[P.Episode]:
+    """`evaluate`'s episodes, whole (episode i seeded `seed + i`)."""
     policy = policy_for(weights, spec)
     frames: list[np.ndarray] = []
     env = _render_env(spec.env_id) if video else make_env(spec.env_id, "dense")
@@ -65,10 +79,7 @@ def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video:
         video.parent.mkdir(parents=True, exist_ok=True)
         fps = int(env.metadata.get("render_fps", 30))
         imageio.mimwrite(video, frames, fps=fps, macro_block_size=1)
-    returns = [e.episode_return for e in eps]
-    goals = [spec.reached_goal(e) for e in eps]
-    success = None if None in goals else float(np.mean(goals))
-    return Evaluation(float(np.mean(returns)), float(np.std(returns)), float(np.mean([e.length for e in eps])), success)
+    return eps
 
 
 def record_demos(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, deterministic: bool = True,

@@ -85,6 +85,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--video", default=None, help="write the first episode as an MP4, rendered off-screen")
             p.add_argument("--stochastic", action="store_true", help="sample the policy's actions (seeded) instead of "
                            "taking its deterministic ones (tanh of the mean, or the most likely action)")
+            p.add_argument("--json", action="store_true", help="print the summary and every episode (seed, return, "
+                           "length, how it ended) as JSON")
             continue
         if role == "demos":
             p.add_argument("checkpoint", help="a learner checkpoint, normally of dense-reward SAC (runs/<run>/checkpoints/learner.pt)")

@@ -22,20 +22,41 @@ def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentP
 
 
 def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
-    """`silcr eval CHECKPOINT [--episodes N] [--video out.mp4] [--stochastic]`."""
+    """`silcr eval CHECKPOINT [--episodes N] [--video out.mp4] [--stochastic] [--json]`."""
     weights, env_id = _policy_from_checkpoint(args, parser)
-    from silcr.common.envs import EnvSpec
-    from silcr.learner.evaluate import evaluate
+    import numpy as np
 
+    from silcr.common.envs import EnvSpec
+    from silcr.learner.evaluate import evaluation_episodes, summary
+
+    spec = EnvSpec.of(env_id)
     try:
-        mean, std, length, success = evaluate(weights, EnvSpec.of(env_id), args.episodes, args.seed,
-                                              Path(args.video) if args.video else None, not args.stochastic)
+        eps = evaluation_episodes(weights, spec, args.episodes, args.seed, Path(args.video) if args.video else None,
+                                  not args.stochastic)
     except RuntimeError as e:
         print(f"silcr eval: error: {e}", file=sys.stderr)
         return 1
+    mean, std, length, success = summary(eps, spec)
+    returns = [e.episode_return for e in eps]
+    at_limit = sum(e.truncated for e in eps)
+    if args.json:
+        import json
+
+        print(json.dumps({
+            "env": env_id, "policy_version": weights.version, "deterministic": not args.stochastic,
+            "first_seed": args.seed, "return_mean": mean, "return_std": std, "return_median": float(np.median(returns)),
+            "length_mean": length, "goal_share": success, "episodes_at_time_limit": at_limit,
+            "episodes": [{"seed": args.seed + i, "return": e.episode_return, "length": e.length,
+                          "terminated": e.terminated, "truncated": e.truncated, "goal": spec.reached_goal(e)}
+                         for i, e in enumerate(eps)],
+        }, indent=2))
+        return 0
     sampled = ", sampled actions" if args.stochastic else ""
+    # The median and the episodes that ran to the time limit tell a policy that always does middling from one
+    # that either succeeds or fails early (Humanoid's walkers and fallers), which mean ± std alone does not.
     print(f"{env_id}, policy version {weights.version}{sampled}: return {mean:.1f} ± {std:.1f} over {args.episodes} "
-          f"episodes (mean length {length:.0f})"
+          f"episodes (median {np.median(returns):.1f}, mean length {length:.0f}, {at_limit} of {len(eps)} ran to the "
+          f"time limit)"
           + ("" if success is None else f", goal reached in {success:.0%}") + (f"; video: {args.video}" if args.video else ""))
     return 0
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import subprocess
 import sys
 
@@ -86,6 +87,20 @@ def test_eval_reports_mean_and_std(checkpoint):
                        capture_output=True, text=True, cwd=REPO, timeout=120)
     assert r.returncode == 0, r.stderr
     assert "InvertedPendulum-v5, policy version 3: return" in r.stdout and "over 3 episodes" in r.stdout
+    # --json: every episode, and a summary that is theirs (the same episodes as the text: same seeds)
+    j = subprocess.run([sys.executable, "-m", "silcr.cli", "eval", str(checkpoint), "--episodes", "3", "--json"],
+                       capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert j.returncode == 0, j.stderr
+    out = json.loads(j.stdout)
+    eps = out["episodes"]
+    assert [e["seed"] for e in eps] == [12345, 12346, 12347] and out["deterministic"] is True
+    assert out["return_mean"] == pytest.approx(sum(e["return"] for e in eps) / 3)
+    assert out["length_mean"] == pytest.approx(sum(e["length"] for e in eps) / 3)
+    assert out["episodes_at_time_limit"] == sum(e["truncated"] for e in eps)
+    # InvertedPendulum-v5 pays 1 a step, none for the step that falls; this untrained policy falls every time
+    assert all(e["terminated"] and e["return"] == e["length"] - 1 for e in eps)
+    assert f"return {out['return_mean']:.1f} ± {out['return_std']:.1f}" in r.stdout
+    assert f"median {out['return_median']:.1f}" in r.stdout and "0 of 3 ran to the time limit" in r.stdout
 
 
 def test_eval_writes_a_video_when_a_renderer_exists(checkpoint, tmp_path):
