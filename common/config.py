@@ -138,6 +138,9 @@ class Config:
                               "within 0.01 of float32's: docs/protocol.md)", choices=tuple(WEIGHTS_WIRE))
     eval_interval: int = _opt(5_000, {"train", "learner"}, "evaluate the policy every N environment steps (deterministic unless --eval-stochastic)")
     eval_episodes: int = _opt(5, {"train", "learner"}, "episodes per evaluation")
+    final_eval_episodes: int = _opt(0, {"train", "learner"}, "episodes of the closing evaluation, the run's final "
+                                    "number (0: --eval-episodes); more give a steadier number where episodes either "
+                                    "succeed or fail early (Humanoid: docs/algorithm.md)", absent=0)
     eval_stochastic: bool = _opt(False, {"train", "learner"}, "evaluate by sampling the policy's actions (seeded) instead "
                                  "of its deterministic ones: a memoryless policy in a partial view, such as MiniGrid's, "
                                  "can loop forever on its most likely actions (docs/algorithm.md)")
@@ -383,7 +386,7 @@ _AT_LEAST = {name: 1 for name in ("online_capacity", "expert_capacity", "total_s
                                   "eval_interval", "checkpoint_interval", "actors", "envs_per_actor",
                                   "batches_per_request", "requests_in_flight", "weights_poll_steps", "disc_batch_size",
                                   "disc_interval", "recent_window", "spi_tolerance")} | {
-    "batch_size": 2, "eval_episodes": 0, "disc_warmup": 0, "learning_starts": 0, "actor_id": -1, "torch_threads": 0,
+    "batch_size": 2, "eval_episodes": 0, "final_eval_episodes": 0, "disc_warmup": 0, "learning_starts": 0, "actor_id": -1, "torch_threads": 0,
     "max_restarts": 0, "grad_clip": 0, "gasil_alpha": 0, "disc_grad_penalty": 0, "weights_fanout_mb_s": 0,
     "buffer_checkpoint_interval": 0}
 _AT_MOST = {"batches_per_request": 64}

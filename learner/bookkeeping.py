@@ -162,8 +162,8 @@ class Bookkeeping:
         if finished:
             self.policy_version += 1
             self.publish_weights(final=True)
-            if self.updates != self.evaluations.last_eval_updates:  # not the policy the schedule just evaluated
-                self.evaluate()
+            if self.evaluations.final_due(self.updates):
+                self.evaluate(final=True)
             log.info("finished: %d env steps, %d updates, last eval return %s", self.env_steps, self.updates,
                      self.evaluations.last_eval_return)
         self.clock.log_span()
@@ -174,7 +174,7 @@ class Bookkeeping:
         return True
 
     # -- records ---------------------------------------------------------------------
-    def evaluate(self) -> None:
+    def evaluate(self, final: bool = False) -> None:
         """Evaluate the policy (deterministic unless --eval-stochastic) and write a progress row."""
         self.evaluations.run(self.weights(), {
             "time": round(self.clock.elapsed(), 3),
@@ -184,7 +184,7 @@ class Bookkeeping:
             "alpha": self.update.alpha,
             "updates_per_s": self.clock.rates(self.updates)["updates_per_s"],
             "checkpoints_failed": self.checkpoints.failed,
-        }, self.update.stats(), self.updates, self.buffer_meta)
+        }, self.update.stats(), self.updates, self.buffer_meta, final)
 
     def stats(self) -> dict[str, Any]:
         """The learner's stats message (the batch stream adds its own counters)."""

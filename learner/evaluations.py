@@ -1,7 +1,8 @@
 """The learner's evaluations: when they fall due, running them, and the progress row each writes.
 
 Every `--eval-interval` env steps (and once before the first update, every curve's baseline,
-and once at the end) the current policy plays `--eval-episodes` episodes with the dense reward
+and once at the end, over `--final-eval-episodes` when given) the current policy plays
+`--eval-episodes` episodes with the dense reward
 (`evaluate.evaluate`, deterministic unless `--eval-stochastic`, seeded by the evaluation's index),
 and one row goes to progress.csv and TensorBoard (`progress.ProgressLog`): the evaluation, the
 last update's statistics (`update.Update.stats`) and D_E as the buffer last described it.
@@ -46,14 +47,24 @@ class Evaluations:
         """The next evaluation falls at the next multiple of --eval-interval after `env_steps`."""
         self.next_eval = (env_steps // self.cfg.eval_interval + 1) * self.cfg.eval_interval
 
+    @property
+    def final_episodes(self) -> int:
+        return self.cfg.final_eval_episodes or self.cfg.eval_episodes
+
+    def final_due(self, updates: int) -> bool:
+        """Whether the run's end needs an evaluation of its own: the schedule's last one saw an older policy, or
+        fewer episodes than the closing one plays."""
+        return updates != self.last_eval_updates or self.final_episodes != self.cfg.eval_episodes
+
     def run(self, weights: P.Weights, row: dict[str, Any], update_stats: dict[str, float], updates: int,
-            buffer_meta: dict[str, Any]) -> None:
+            buffer_meta: dict[str, Any], final: bool = False) -> None:
         """Evaluate `weights` and write a progress row: `row` (time, counters) with the evaluation, the last
-        update's statistics and D_E's description added."""
-        if self.cfg.eval_episodes == 0:
+        update's statistics and D_E's description added. `final`: the closing evaluation."""
+        episodes = self.final_episodes if final else self.cfg.eval_episodes
+        if episodes == 0:
             return
         t0 = time.monotonic()
-        mean, std, length, success = evaluate(weights, self.spec, self.cfg.eval_episodes,
+        mean, std, length, success = evaluate(weights, self.spec, episodes,
                                               seeds.evaluation(self.cfg.seed, self.evals),
                                               deterministic=not self.cfg.eval_stochastic)
         self.evals += 1
@@ -72,8 +83,8 @@ class Evaluations:
             "q_target_clipped": losses.get("q_target_clipped", float("nan")),
         }
         self.progress.row(self.last_row)
-        log.info("eval at %d env steps, %d updates: return %.1f +- %.1f (length %.0f%s, %.1fs)",
-                 row["env_steps"], updates, mean, std, length,
+        log.info("%s at %d env steps, %d updates: return %.1f +- %.1f over %d episodes (length %.0f%s, %.1fs)",
+                 "final eval" if final else "eval", row["env_steps"], updates, mean, std, episodes, length,
                  "" if success is None else f", goal reached in {success:.0%}", time.monotonic() - t0)
 
     def scalars(self, values: dict[str, float], step: int) -> None:

@@ -7,6 +7,7 @@ from __future__ import annotations
 
 import csv
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -124,3 +125,17 @@ def test_a_diverging_learner_is_counted_and_warned_about(tmp_path):
     last = rows[-1]
     assert float(last["q_max"]) > 1.5 * float(last["q_bound"])
     assert time.monotonic() - t0 < 300
+
+
+def test_the_closing_evaluation_plays_final_eval_episodes(tmp_path):
+    """--final-eval-episodes: the run's last number over more episodes than the schedule's. Here the schedule's
+    last evaluation (1 episode) falls on the final step, so the closing one (4 episodes) is a row of its own."""
+    r = _train(tmp_path, "final", *SMALL, "--total-steps", "1000", "--eval-interval", "500", "--eval-episodes", "1",
+               "--final-eval-episodes", "4")
+    assert r.returncode == 0, r.stdout + r.stderr
+    rows = _rows(tmp_path / "final" / "progress.csv")
+    steps = [int(row["env_steps"]) for row in rows]
+    assert steps[-1] == steps[-2] >= 1000
+    log = (tmp_path / "final" / "logs" / "single-process.log").read_text()
+    assert re.search(rf"final eval at {steps[-1]} env steps, \d+ updates: return [\d.]+ \+- [\d.]+ over 4 episodes", log), log
+    assert len(re.findall(r"eval at \d+ env steps, .* over 1 episodes", log)) == len(rows) - 1
