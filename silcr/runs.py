@@ -64,6 +64,7 @@ NOT_A_SETTING = {"run", "runs_dir", "seed", "resume", "connect", "listen", "zeno
                  "max_restarts", "actor_id", "actors", "envs_per_actor", "single_process", "weights_poll_steps",
                  "weights_wait", "batches_per_request", "requests_in_flight", "max_episode_bytes", "no_throttle",
                  "spi_tolerance", "env", "algo", "reward", "expert_capacity", "demos", "eval_interval", "eval_episodes",
+                 "final_eval_episodes",
                  "total_steps"}
 
 
