@@ -386,8 +386,8 @@ _AT_LEAST = {name: 1 for name in ("online_capacity", "expert_capacity", "total_s
                                   "eval_interval", "checkpoint_interval", "actors", "envs_per_actor",
                                   "batches_per_request", "requests_in_flight", "weights_poll_steps", "disc_batch_size",
                                   "disc_interval", "recent_window", "spi_tolerance")} | {
-    "batch_size": 2, "eval_episodes": 0, "final_eval_episodes": 0, "disc_warmup": 0, "learning_starts": 0, "actor_id": -1, "torch_threads": 0,
-    "max_restarts": 0, "grad_clip": 0, "gasil_alpha": 0, "disc_grad_penalty": 0, "weights_fanout_mb_s": 0,
+    "batch_size": 2, "eval_episodes": 0, "final_eval_episodes": 0, "disc_warmup": 0, "learning_starts": 0,
+    "actor_id": -1, "torch_threads": 0, "max_restarts": 0, "grad_clip": 0, "gasil_alpha": 0, "disc_grad_penalty": 0, "weights_fanout_mb_s": 0,
     "buffer_checkpoint_interval": 0}
 _AT_MOST = {"batches_per_request": 64}
 _ABOVE_ZERO = ("samples_per_insert", "lr", "init_alpha", "disc_lr", "stats_interval")
