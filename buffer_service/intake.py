@@ -42,6 +42,7 @@ class Intake:
         # so that how many the learner made on tables that no longer changed is known at the end.
         self.samples_at_last_episode = 0
         self.rollouts: collections.deque[tuple[float, int]] = collections.deque(maxlen=ROLLOUT_WINDOW)
+        self._rollout_means = self._means()
 
     def ingest(self, payload: bytes) -> P.Episode:
         """Store one episode message; raise `ProtocolError` (and count it) if it is rejected."""
@@ -80,9 +81,15 @@ class Intake:
         self.transitions_received += ep.length
         self.last_episode_version = max(self.last_episode_version, ep.policy_version)
         self.rollouts.append((ep.episode_return, ep.length))
+        self._rollout_means = self._means()
 
     def rollout_meta(self) -> dict[str, Any]:
         """The mean return and length of the last `ROLLOUT_WINDOW` episodes received (None before the first)."""
+        return dict(self._rollout_means)
+
+    def _means(self) -> dict[str, float | None]:
+        # Taken when an episode arrives, not in `rollout_meta`: every batch reply carries them, and replies
+        # come far more often than episodes.
         n = len(self.rollouts)
         return {"rollout_return": sum(r for r, _ in self.rollouts) / n if n else None,
                 "rollout_length": sum(length for _, length in self.rollouts) / n if n else None}
@@ -100,6 +107,7 @@ class Intake:
         # Checkpoints older than the rollout columns hold none: the mean starts again from the next episode.
         self.rollouts.clear()
         self.rollouts.extend((float(r), int(length)) for r, length in state.get("rollouts", []))
+        self._rollout_means = self._means()
 
     def stats(self) -> dict[str, Any]:
         return {

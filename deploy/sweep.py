@@ -151,7 +151,7 @@ def cell_detail(cell: Cell, run_dir: Path, state: str) -> str:
         try:
             last = read_rows(run_dir)[-1]
             parts.append(f"{int(float(last['env_steps'])):,} of {total:,} env steps")
-        except (OSError, IndexError, KeyError, ValueError, TypeError):
+        except (IndexError, KeyError, ValueError, TypeError):  # read_rows gives [] for a missing or unreadable file
             parts.append("no progress.csv rows yet")
     try:
         check_free(run_dir)
