@@ -47,7 +47,11 @@ def load_plain(path: Path, error: type[Exception], what: str) -> Any:
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:
-    payload = load_plain(path, CheckpointError, "checkpoint")
+    return checked_checkpoint(load_plain(path, CheckpointError, "checkpoint"), path)
+
+
+def checked_checkpoint(payload: Any, path: Path) -> dict[str, Any]:
+    """`payload`, loaded from `path`, if it is a learner checkpoint; CheckpointError with one line otherwise."""
     if not isinstance(payload, dict) or not isinstance(payload.get("sac"), dict) or "counters" not in payload:
         raise CheckpointError(f"{path} is not a silcr learner checkpoint")
     return payload

@@ -6,6 +6,8 @@ and once at the end, over `--final-eval-episodes` when given) the current policy
 (`evaluate.evaluate`, deterministic unless `--eval-stochastic`, seeded by the evaluation's index),
 and one row goes to progress.csv and TensorBoard (`progress.ProgressLog`): the evaluation, the
 last update's statistics (`update.Update.stats`) and D_E as the buffer last described it.
+The policy of the best evaluation so far is kept as a model file, `<run dir>/best.silcr`
+(`silcr eval`, `silcr.SILCR.load`), as Stable-Baselines3's EvalCallback keeps its best model.
 Its counters save and restore with the learner checkpoint.
 """
 
@@ -20,6 +22,7 @@ from silcr.common import protocol as P
 from silcr.common import seeds
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
+from silcr.model_file import write as write_model
 
 from .evaluate import evaluate
 from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, GASIL_COLUMNS, ROLLOUT_COLUMNS, ProgressLog
@@ -27,14 +30,20 @@ from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, GASIL_COLUMNS, ROLLOUT
 log = logging.getLogger("learner")
 
 
+#: The policy of the best evaluation so far, in the run directory.
+BEST_MODEL = "best.silcr"
+
+
 class Evaluations:
-    COUNTERS = ("next_eval", "evals", "last_eval_return")
+    COUNTERS = ("next_eval", "evals", "last_eval_return", "best_eval_return")
 
     def __init__(self, cfg: Config, spec: EnvSpec, run_dir: Path, resumed: bool) -> None:
         self.cfg, self.spec = cfg, spec
         self.next_eval = 0
         self.evals = 0
         self.last_eval_return: float | None = None
+        self.best_eval_return: float | None = None
+        self.best_path = run_dir / BEST_MODEL
         self.last_eval_updates = -1  # the update count the last evaluation saw (not checkpointed)
         self.last_row: dict[str, Any] = {}  # the progress row the last evaluation wrote
         run_dir.mkdir(parents=True, exist_ok=True)
@@ -83,9 +92,24 @@ class Evaluations:
             "q_target_clipped": losses.get("q_target_clipped", float("nan")),
         }
         self.progress.row(self.last_row)
+        if self.best_eval_return is None or mean > self.best_eval_return:
+            self.keep_best(weights, mean, std, episodes, row["env_steps"], updates)
         log.info("%s at %d env steps, %d updates: return %.1f +- %.1f over %d episodes (length %.0f%s, %.1fs)",
                  "final eval" if final else "eval", row["env_steps"], updates, mean, std, episodes, length,
                  "" if success is None else f", goal reached in {success:.0%}", time.monotonic() - t0)
+
+    def keep_best(self, weights: P.Weights, mean: float, std: float, episodes: int, env_steps: int,
+                  updates: int) -> None:
+        """Write `weights` as the run's best policy (atomically), with the evaluation that chose it. A mean of a
+        few episodes, picked as the highest of many, overstates the policy: `silcr eval --episodes 50` says more."""
+        evaluation = {"return_mean": mean, "return_std": std, "episodes": episodes, "env_steps": env_steps,
+                      "updates": updates, "deterministic": not self.cfg.eval_stochastic}
+        try:
+            write_model(self.best_path, self.cfg.algo, self.cfg.to_dict(), weights, self.spec, evaluation=evaluation)
+        except (OSError, RuntimeError) as e:  # a full disk must not stop training: the next best tries again
+            log.error("the best policy so far (return %.1f) could not be written to %s: %s", mean, self.best_path, e)
+            return
+        self.best_eval_return = mean
 
     def scalars(self, values: dict[str, float], step: int) -> None:
         self.progress.scalars(values, step)
@@ -103,4 +127,5 @@ class Evaluations:
 
     def restore(self, counters: dict[str, Any]) -> None:
         for name in self.COUNTERS:
-            setattr(self, name, counters[name])
+            # best_eval_return is absent from checkpoints written before best.silcr existed: the next evaluation sets it
+            setattr(self, name, counters.get(name) if name == "best_eval_return" else counters[name])

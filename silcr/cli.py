@@ -28,8 +28,8 @@ ROLES_HELP = {
     "monitor": "show the live stats of a running system",
     "bench": "run the benchmark suite (tables on screen, JSON files)",
     "plot": "learning curves (mean +- std over seeds) and a summary table from run directories",
-    "eval": "evaluate a checkpoint's deterministic policy, optionally recording a video",
-    "demos": "record a checkpoint's episodes as a demonstrations file for --algo sqil",
+    "eval": "evaluate the deterministic policy of a checkpoint or model file, optionally recording a video",
+    "demos": "record the episodes of a checkpoint's or model file's policy as a demonstrations file for --algo sqil",
     "sweep": "run every (algorithm, task, seed) cell of an experiment file, resuming unfinished cells",
     "health": "check a running component's heartbeat (alive) and Zenoh liveliness token (--ready): a scheduler's probe",
 }
@@ -79,7 +79,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
                            "smooth out a noisy evaluation)")
             continue
         if role == "eval":
-            p.add_argument("checkpoint", help="a learner checkpoint (runs/<run>/checkpoints/learner.pt)")
+            p.add_argument("checkpoint", help="a learner checkpoint (runs/<run>/checkpoints/learner.pt) or a model "
+                                               "file (a run's best policy, runs/<run>/best.silcr; Model.save's)")
             p.add_argument("--episodes", type=int, default=10, help="evaluation episodes (default: 10)")
             p.add_argument("--seed", type=int, default=12345, help="seed of the first episode (default: 12345)")
             p.add_argument("--video", default=None, help="write the first episode as an MP4, rendered off-screen")
@@ -89,7 +90,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
                            "length, how it ended) as JSON")
             continue
         if role == "demos":
-            p.add_argument("checkpoint", help="a learner checkpoint, normally of dense-reward SAC (runs/<run>/checkpoints/learner.pt)")
+            p.add_argument("checkpoint", help="a learner checkpoint, normally of dense-reward SAC (runs/<run>/checkpoints/"
+                                               "learner.pt), or a model file (runs/<run>/best.silcr)")
             p.add_argument("--episodes", type=int, default=10, help="episodes to record (default: 10)")
             p.add_argument("-o", "--out", default="demos.npz", help="demonstrations file to write (default: demos.npz)")
             p.add_argument("--seed", type=int, default=2024, help="seed of the first episode (default: 2024)")

@@ -13,6 +13,8 @@ code, as learner checkpoints: `learner/checkpoint.py`), written atomically:
                max_episode_steps, time_limit
     training   only with include_training_state: the learner checkpoint (networks, optimisers,
                counters) and the buffer checkpoint's bytes (D_O, D_E, counters), to go on training
+    evaluation only in a run's best.silcr (`learner/evaluations.py`): the evaluation that chose this
+               policy (return_mean, return_std, episodes, env_steps, updates, deterministic)
 """
 
 from __future__ import annotations
@@ -58,13 +60,15 @@ def weights_of(d: dict[str, Any]) -> P.Weights:
 
 
 def write(path: Path, algo: str, config: dict[str, Any], weights: P.Weights, spec: EnvSpec,
-          training: dict[str, Any] | None = None) -> None:
+          training: dict[str, Any] | None = None, evaluation: dict[str, Any] | None = None) -> None:
     from silcr.version import __version__
 
     payload = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "silcr": __version__, "algo": algo, "config": config,
                "policy": policy_dict(weights), "spec": spec_dict(spec)}
     if training is not None:
         payload["training"] = training
+    if evaluation is not None:
+        payload["evaluation"] = evaluation
     path.parent.mkdir(parents=True, exist_ok=True)
     write_atomic(path, lambda f: torch.save(payload, f))
 
@@ -73,8 +77,17 @@ def read(path: Path) -> dict[str, Any]:
     """The file's contents, checked to be a model this release reads; ModelFileError with one line otherwise."""
     from silcr.learner.checkpoint import load_plain
 
-    payload = load_plain(path, ModelFileError, "model file")
-    if not isinstance(payload, dict) or payload.get("format") != MODEL_FORMAT:
+    return checked(load_plain(path, ModelFileError, "model file"), path)
+
+
+def is_model(payload: Any) -> bool:
+    """Whether a loaded file is a model file (and not a learner checkpoint or anything else)."""
+    return isinstance(payload, dict) and payload.get("format") == MODEL_FORMAT
+
+
+def checked(payload: Any, path: Path) -> dict[str, Any]:
+    """`payload`, loaded from `path`, if it is a model this release reads; ModelFileError with one line otherwise."""
+    if not is_model(payload):
         what = "a learner checkpoint (load it with silcr eval, or train from it with --resume)" \
             if isinstance(payload, dict) and {"counters", "config"} <= set(payload) else "not a silcr model file"
         raise ModelFileError(f"{path} is {what}")

@@ -1,4 +1,5 @@
-"""`silcr eval` and `silcr demos`: run a learner checkpoint's policy, to score it or to record demonstrations."""
+"""`silcr eval` and `silcr demos`: run the policy of a learner checkpoint or a model file, to score it or to record
+demonstrations."""
 
 from __future__ import annotations
 
@@ -8,17 +9,23 @@ from pathlib import Path
 
 
 def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentParser):
-    """The checked `--episodes` and the actor weights and env id of `args.checkpoint` (exit 2 if unusable)."""
-    from silcr.learner.checkpoint import CheckpointError, load_checkpoint
+    """The checked `--episodes` and the actor weights and env id of `args.checkpoint`: a learner checkpoint or a
+    model file (`Model.save`, a run's best.silcr); exit 2 if unusable."""
+    from silcr import model_file
+    from silcr.learner.checkpoint import CheckpointError, checked_checkpoint, load_plain
     from silcr.learner.evaluate import weights_from_checkpoint
 
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
+    path = Path(args.checkpoint)
     try:
-        payload = load_checkpoint(Path(args.checkpoint))
-    except CheckpointError as e:
+        payload = load_plain(path, CheckpointError, "checkpoint")
+        if model_file.is_model(payload):
+            payload = model_file.checked(payload, path)
+            return model_file.weights_of(payload["policy"]), str(payload["config"]["env"])
+        return weights_from_checkpoint(checked_checkpoint(payload, path))
+    except (CheckpointError, model_file.ModelFileError) as e:
         parser.error(str(e))
-    return weights_from_checkpoint(payload)
 
 
 def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
@@ -29,7 +36,10 @@ def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     from silcr.common.envs import EnvSpec
     from silcr.learner.evaluate import evaluation_episodes, summary
 
-    spec = EnvSpec.of(env_id)
+    try:
+        spec = EnvSpec.of(env_id)
+    except ValueError as e:  # a model of an env registered only in the process that trained it
+        parser.error(f"{args.checkpoint}: {e}")
     try:
         eps = evaluation_episodes(weights, spec, args.episodes, args.seed, Path(args.video) if args.video else None,
                                   not args.stochastic)
@@ -73,7 +83,10 @@ def demos_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     from silcr.common.envs import EnvSpec
     from silcr.learner.evaluate import record_demos
 
-    spec = EnvSpec.of(env_id)
+    try:
+        spec = EnvSpec.of(env_id)
+    except ValueError as e:
+        parser.error(f"{args.checkpoint}: {e}")
     if spec.discrete:  # --algo sqil and --expert-init, which read these files, run with continuous actions only
         parser.error(f"{args.checkpoint}: {env_id} has discrete actions; demonstrations files hold continuous ones "
                      f"(for --algo sqil and --expert-init, which refuse discrete actions)")
