@@ -20,12 +20,18 @@ def format_return(x: float) -> str:
 
 
 def done_message(run_dir: Path) -> str:
-    """The closing line of a finished run: its last evaluation (the learner's final one) and where the records are."""
+    """The closing line of a finished run: its last evaluation (the learner's final one), its best one when the
+    learner kept that policy (best.silcr), and where the records are."""
     last = ""
     rows = read_rows(run_dir)
     try:
         if rows and rows[-1].get("eval_return"):
             last = f" final evaluation {format_return(float(rows[-1]['eval_return']))} at {rows[-1]['env_steps']} env steps;"
+        evaluated = [r for r in rows if r.get("eval_return")]
+        if evaluated and (run_dir / "best.silcr").exists():
+            best = max(evaluated, key=lambda r: float(r["eval_return"]))  # the first of equals, as the learner keeps
+            last += (f" best {format_return(float(best['eval_return']))} at {best['env_steps']} env steps, its policy in "
+                     f"{run_dir / 'best.silcr'};")
     except ValueError:
         pass  # the line still says where to look
     return (f"silcr train: done.{last} progress: {run_dir / 'progress.csv'}; "

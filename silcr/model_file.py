@@ -73,11 +73,11 @@ def write(path: Path, algo: str, config: dict[str, Any], weights: P.Weights, spe
     write_atomic(path, lambda f: torch.save(payload, f))
 
 
-def read(path: Path) -> dict[str, Any]:
+def read(path: str | Path) -> dict[str, Any]:
     """The file's contents, checked to be a model this release reads; ModelFileError with one line otherwise."""
     from silcr.learner.checkpoint import load_plain
 
-    return checked(load_plain(path, ModelFileError, "model file"), path)
+    return checked(load_plain(Path(path), ModelFileError, "model file"), Path(path))
 
 
 def is_model(payload: Any) -> bool:
