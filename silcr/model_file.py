@@ -77,7 +77,8 @@ def read(path: str | Path) -> dict[str, Any]:
     """The file's contents, checked to be a model this release reads; ModelFileError with one line otherwise."""
     from silcr.learner.checkpoint import load_plain
 
-    return checked(load_plain(Path(path), ModelFileError, "model file"), Path(path))
+    path = Path(path)
+    return checked(load_plain(path, ModelFileError, "model file"), path)
 
 
 def is_model(payload: Any) -> bool:

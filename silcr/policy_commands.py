@@ -9,9 +9,10 @@ from pathlib import Path
 
 
 def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentParser):
-    """The checked `--episodes` and the actor weights and env id of `args.checkpoint`: a learner checkpoint or a
-    model file (`Model.save`, a run's best.silcr); exit 2 if unusable."""
+    """The checked `--episodes`, and the actor weights, env id and `EnvSpec` of `args.checkpoint`: a learner
+    checkpoint or a model file (`Model.save`, a run's best.silcr); exit 2 if unusable."""
     from silcr import model_file
+    from silcr.common.envs import EnvSpec
     from silcr.learner.checkpoint import CheckpointError, checked_checkpoint, load_plain
     from silcr.learner.evaluate import weights_from_checkpoint
 
@@ -22,24 +23,24 @@ def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentP
         payload = load_plain(path, CheckpointError, "checkpoint")
         if model_file.is_model(payload):
             payload = model_file.checked(payload, path)
-            return model_file.weights_of(payload["policy"]), str(payload["config"]["env"])
-        return weights_from_checkpoint(checked_checkpoint(payload, path))
+            weights, env_id = model_file.weights_of(payload["policy"]), str(payload["config"]["env"])
+        else:
+            weights, env_id = weights_from_checkpoint(checked_checkpoint(payload, path))
     except (CheckpointError, model_file.ModelFileError) as e:
         parser.error(str(e))
+    try:
+        return weights, env_id, EnvSpec.of(env_id)
+    except ValueError as e:  # a model of an env registered only in the process that trained it
+        parser.error(f"{args.checkpoint}: {e}")
 
 
 def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> int:
     """`silcr eval CHECKPOINT [--episodes N] [--video out.mp4] [--stochastic] [--json]`."""
-    weights, env_id = _policy_from_checkpoint(args, parser)
+    weights, env_id, spec = _policy_from_checkpoint(args, parser)
     import numpy as np
 
-    from silcr.common.envs import EnvSpec
     from silcr.learner.evaluate import evaluation_episodes, summary
 
-    try:
-        spec = EnvSpec.of(env_id)
-    except ValueError as e:  # a model of an env registered only in the process that trained it
-        parser.error(f"{args.checkpoint}: {e}")
     try:
         eps = evaluation_episodes(weights, spec, args.episodes, args.seed, Path(args.video) if args.video else None,
                                   not args.stochastic)
@@ -78,15 +79,10 @@ def demos_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
     out = Path(args.out)
     if out.suffix != ".npz":
         parser.error(f"-o {args.out}: the demonstrations file must end in .npz")
-    weights, env_id = _policy_from_checkpoint(args, parser)
+    weights, env_id, spec = _policy_from_checkpoint(args, parser)
     from silcr.common.demos import save_demos
-    from silcr.common.envs import EnvSpec
     from silcr.learner.evaluate import record_demos
 
-    try:
-        spec = EnvSpec.of(env_id)
-    except ValueError as e:
-        parser.error(f"{args.checkpoint}: {e}")
     if spec.discrete:  # --algo sqil and --expert-init, which read these files, run with continuous actions only
         parser.error(f"{args.checkpoint}: {env_id} has discrete actions; demonstrations files hold continuous ones "
                      f"(for --algo sqil and --expert-init, which refuse discrete actions)")
