@@ -10,8 +10,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-from silcr.common.commands import command
 from silcr.common import protocol as P
+from silcr.common import run_layout
+from silcr.common.commands import command
 
 from silcr.deploy.monitor import StatsSnapshot
 
@@ -77,5 +78,5 @@ def _single_process_rate(env_id: str, actors: int, warmup: int, updates: int) ->
                 "--eval-episodes", "1", "--eval-interval", str(10 * (warmup + updates))),
         stdout=subprocess.DEVNULL, stderr=subprocess.STDOUT, check=True, timeout=3600,
     )
-    last = list(csv.DictReader(open(runs_dir / "single" / "progress.csv")))[-1]
+    last = list(csv.DictReader(open(run_layout.progress(runs_dir / "single"))))[-1]
     return float(last["updates_per_s"])

@@ -39,8 +39,9 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
-from silcr.common.commands import command
+from silcr.common import run_layout
 from silcr.common.algorithms import ALGORITHMS
+from silcr.common.commands import command
 
 from .procs import free_port
 from .timing import print_table, write_json
@@ -142,10 +143,10 @@ def run_once(program: str, cfg: PeerConfig, timeout: float = 3600) -> dict[str, 
         # Without the thread-pool defaults this process took from silcr: a user's shell has none.
         wall, cpu, _ = _timed(command(*cfg.silcr_args(runs_dir, "peer", program == "single-process")), timeout,
                               env=_peer_env())
-        counters = torch.load(runs_dir / "peer" / "checkpoints" / "learner.pt", map_location="cpu",
+        counters = torch.load(run_layout.learner_checkpoint(runs_dir / "peer"), map_location="cpu",
                               weights_only=True)["counters"]
         log_name = "single-process.log" if program == "single-process" else "learner.log"
-        account = learner_account((runs_dir / "peer" / "logs" / log_name).read_text(errors="replace"))
+        account = learner_account((run_layout.logs(runs_dir / "peer") / log_name).read_text(errors="replace"))
         shutil.rmtree(runs_dir, ignore_errors=True)  # its checkpoints: tens of MB a run
         work = {"updates": int(counters["updates"]), "env_steps": int(counters["env_steps"])} | account
     return {"program": program, "wall_s": wall, "cpu_s": cpu, **work}

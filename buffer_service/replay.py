@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 from silcr.common import protocol as P
+from silcr.common import run_layout
 from silcr.common import seeds
 from silcr.common.algorithms import algorithm
 from silcr.common.config import Config
@@ -141,7 +142,7 @@ class ReplayState:
 
 
 def checkpoint_path(cfg: Config) -> Path:
-    return cfg.run_dir / "checkpoints" / "buffer.ckpt"
+    return run_layout.buffer_checkpoint(cfg.run_dir)
 
 
 def open_replay(cfg: Config, spec: EnvSpec) -> tuple[ReplayState, snapshot.Snapshot | None]:

@@ -16,7 +16,7 @@ import os
 from pathlib import Path
 from typing import Iterator
 
-LOCK_NAME = ".lock"
+from silcr.common import run_layout
 
 
 class RunInUse(RuntimeError):
@@ -43,7 +43,7 @@ def _lock_or_refuse(fd: int, run_dir: Path) -> None:
 
 def check_free(run_dir: Path) -> None:
     """Raise `RunInUse` if a live process holds `run_dir`'s lock. Writes nothing."""
-    path = run_dir / LOCK_NAME
+    path = run_layout.lock(run_dir)
     try:
         fd = os.open(path, os.O_RDONLY)
     except FileNotFoundError:
@@ -59,7 +59,7 @@ def hold(run_dir: Path) -> Iterator[None]:
     """Create `run_dir` and hold its lock while the block runs; `RunInUse` if another process holds it."""
     check_free(run_dir)  # before creating anything
     run_dir.mkdir(parents=True, exist_ok=True)
-    fd = os.open(run_dir / LOCK_NAME, os.O_RDWR | os.O_CREAT, 0o644)
+    fd = os.open(run_layout.lock(run_dir), os.O_RDWR | os.O_CREAT, 0o644)
     try:
         _lock_or_refuse(fd, run_dir)  # another launcher may have taken it between the check and now
         os.ftruncate(fd, 0)

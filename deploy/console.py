@@ -10,6 +10,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+from silcr.common import run_layout
 from silcr.learner.progress import read_rows
 
 
@@ -28,25 +29,25 @@ def done_message(run_dir: Path) -> str:
         if rows and rows[-1].get("eval_return"):
             last = f" final evaluation {format_return(float(rows[-1]['eval_return']))} at {rows[-1]['env_steps']} env steps;"
         evaluated = [r for r in rows if r.get("eval_return")]
-        if evaluated and (run_dir / "best.silcr").exists():
+        if evaluated and run_layout.best_model(run_dir).exists():
             best = max(evaluated, key=lambda r: float(r["eval_return"]))  # the first of equals, as the learner keeps
             last += (f" best {format_return(float(best['eval_return']))} at {best['env_steps']} env steps, its policy in "
-                     f"{run_dir / 'best.silcr'};")
+                     f"{run_layout.best_model(run_dir)};")
     except ValueError:
         pass  # the line still says where to look
-    return (f"silcr train: done.{last} progress: {run_dir / 'progress.csv'}; "
-            f"TensorBoard: tensorboard --logdir {run_dir / 'tb'}")
+    return (f"silcr train: done.{last} progress: {run_layout.progress(run_dir)}; "
+            f"TensorBoard: tensorboard --logdir {run_layout.tensorboard(run_dir)}")
 
 
-CHECKPOINT_FILES = {"learner": "learner.pt", "buffer": "buffer.ckpt"}
+CHECKPOINT_FILES = {"learner": run_layout.learner_checkpoint, "buffer": run_layout.buffer_checkpoint}
 
 
 def stale_checkpoints_message(run_dir: Path, components: list[str]) -> str:
     """What `silcr train` says on stderr when a run ended but the final checkpoint of `components` could not be
     written (it then exits with EXIT_STALE_CHECKPOINT, 4): which files are stale, and what that means."""
-    files = ", ".join(str(run_dir / "checkpoints" / CHECKPOINT_FILES[c]) for c in components)
+    files = ", ".join(str(CHECKPOINT_FILES[c](run_dir)) for c in components)
     return (f"silcr train: error: the final checkpoint of the {' and the '.join(components)} could not be written "
-            f"(see {run_dir / 'logs'}): {files} {'is' if len(components) == 1 else 'are'} stale, from before the "
+            f"(see {run_layout.logs(run_dir)}): {files} {'is' if len(components) == 1 else 'are'} stale, from before the "
             f"end of the run, and --resume would continue from there; progress.csv holds the whole run")
 
 

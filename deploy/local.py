@@ -24,6 +24,7 @@ from pathlib import Path
 from typing import Any
 
 from silcr.common import protocol as P
+from silcr.common import run_layout
 from silcr.common import seeds
 from silcr.common.clients import Shutdown
 from silcr.common.config import Config, actor_zenoh_mode
@@ -107,7 +108,7 @@ class LocalRun:
         self.procs: dict[str, mp.process.BaseProcess] = {}
         self.specs: dict[str, tuple[str, Config]] = {}
         self.restarts: dict[str, int] = {}
-        self.logs = cfg.run_dir / "logs"
+        self.logs = run_layout.logs(cfg.run_dir)
 
     def start(self, role: str, cfg: Config, name: str) -> None:
         self.specs[name] = (role, cfg)
@@ -120,7 +121,7 @@ class LocalRun:
         pids = {n: proc.pid for n, proc in self.procs.items()} | {"train": os.getpid()}
         tmp = self.cfg.run_dir / ".pids.json.tmp"
         tmp.write_text(json.dumps(pids))
-        tmp.replace(self.cfg.run_dir / "pids.json")
+        tmp.replace(run_layout.pids(self.cfg.run_dir))
 
     def stop_all(self, order: list[str]) -> None:
         for name in order:
@@ -150,8 +151,8 @@ def run_train(cfg: Config) -> int:
 
 def _run_train(cfg: Config) -> int:
     run_dir = cfg.run_dir
-    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
-    cfg.save(run_dir / "config.toml")  # the CLI checked the port and holds the run directory's lock
+    run_layout.logs(run_dir).mkdir(parents=True, exist_ok=True)
+    cfg.save(run_layout.config(run_dir))  # the CLI checked the port and holds the run directory's lock
     child_cfg = Config(**cfg.to_dict())
     if not child_cfg.connect:
         child_cfg.connect = [cfg.zenoh_listen]

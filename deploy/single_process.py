@@ -38,6 +38,7 @@ from typing import Any, Callable
 from silcr.actor.service import Actor, policy_factory, random_initial_weights
 from silcr.buffer_service import snapshot
 from silcr.buffer_service.replay import checkpoint_path, open_replay
+from silcr.common import run_layout
 from silcr.common import seeds
 from silcr.common.clients import InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
 from silcr.common.config import Config
@@ -154,10 +155,10 @@ def run_single_process(cfg: Config) -> int:
 
 def _run_single_process(cfg: Config) -> int:
     run_dir = cfg.run_dir
-    (run_dir / "logs").mkdir(parents=True, exist_ok=True)
-    cfg.save(run_dir / "config.toml")
+    run_layout.logs(run_dir).mkdir(parents=True, exist_ok=True)
+    cfg.save(run_layout.config(run_dir))
     # The log goes to a file, as each component's does in a distributed run; the terminal shows the display.
-    logging.basicConfig(level=logging.INFO, filename=run_dir / "logs" / "single-process.log", force=True,
+    logging.basicConfig(level=logging.INFO, filename=run_layout.logs(run_dir) / "single-process.log", force=True,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
     print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), "
           f"{cfg.total_steps} env steps, single process)", flush=True)
@@ -181,5 +182,5 @@ def _run_single_process(cfg: Config) -> int:
         print(done_message(run_dir))
         return 0
     print(f"silcr train: stopped ({stop.reason}) at {run.learner.books.updates} updates; checkpoints in "
-          f"{run_dir / 'checkpoints'}", file=sys.stderr)
+          f"{run_layout.checkpoints(run_dir)}", file=sys.stderr)
     return 130

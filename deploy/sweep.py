@@ -39,13 +39,13 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
+from silcr.common import run_layout
 from silcr.common.commands import command, option_args
 from silcr.common.config import FIELDS, ConfigError, from_options
 from silcr.common.lifecycle import caller_signal_handlers, interrupt_on_ctrl_c
 from silcr.learner.progress import read_rows
 from silcr.runs import wall_seconds
 
-DONE_MARKER = "sweep-done.json"
 # Set per cell by the sweep itself, so an experiment file may not set them.
 _SWEEP_OWNED = {"run", "runs_dir", "seed", "resume", "zenoh_listen", "config"}
 
@@ -132,9 +132,9 @@ def cells_of(exp: dict[str, Any], seeds: list[int]) -> list[Cell]:
 
 
 def cell_state(run_dir: Path) -> str:
-    if (run_dir / DONE_MARKER).exists():
+    if run_layout.sweep_done(run_dir).exists():
         return "done"
-    if (run_dir / "checkpoints" / "learner.pt").exists():
+    if run_layout.learner_checkpoint(run_dir).exists():
         return "partial"
     return "new"
 
@@ -245,13 +245,13 @@ def _run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: 
                     raise ExperimentError(f"no free port in {port_base}-{port_base + 63}; pass another --port-base")
                 resume = states[cell.name] == "partial"
                 (runs_dir / cell.name).mkdir(parents=True, exist_ok=True)
-                log = open(runs_dir / cell.name / "sweep.log", "ab")
+                log = open(run_layout.sweep_log(runs_dir / cell.name), "ab")
                 # Own process group: Ctrl-C reaches the sweep only, and it stops the cells in order.
                 proc = subprocess.Popen(_command(cell, runs_dir, port, resume), stdout=log, stderr=subprocess.STDOUT,
                                         start_new_session=True, env=os.environ | {"PYTHONUNBUFFERED": "1"})
                 running.append(_Running(cell, proc, port, time.monotonic(), log))
                 print(f"[{finished}/{len(cells)}] {'resume' if resume else 'start '} {cell.name} "
-                      f"(log: {runs_dir / cell.name / 'sweep.log'})", flush=True)
+                      f"(log: {run_layout.sweep_log(runs_dir / cell.name)})", flush=True)
             time.sleep(0.5)
             for r in list(running):
                 rc = r.proc.poll()
@@ -266,12 +266,12 @@ def _run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: 
                     # `minutes` is this stretch; a resumed cell's compute is the sum over its stretches.
                     marker = {"cell": r.cell.name, "variant": r.cell.variant, "task": r.cell.task, "seed": r.cell.seed,
                               "finished_at": time.time(), "minutes": minutes, "minutes_all_stretches": total}
-                    (runs_dir / r.cell.name / DONE_MARKER).write_text(json.dumps(marker))
+                    run_layout.sweep_done(runs_dir / r.cell.name).write_text(json.dumps(marker))
                     spent = f" ({total:.1f} min over every stretch)" if total is not None and total > minutes + 1 else ""
                     print(f"[{finished}/{len(cells)}] done   {r.cell.name} in {minutes:.1f} min{spent}", flush=True)
                 else:
                     failed.append(r.cell.name)
-                    print(f"[{finished}/{len(cells)}] FAILED {r.cell.name} (exit {rc}); see {runs_dir / r.cell.name / 'sweep.log'}",
+                    print(f"[{finished}/{len(cells)}] FAILED {r.cell.name} (exit {rc}); see {run_layout.sweep_log(runs_dir / r.cell.name)}",
                           flush=True)
     except KeyboardInterrupt:
         print(f"\nsilcr sweep: interrupted; stopping {len(running)} running cell(s); run the same command with --resume "

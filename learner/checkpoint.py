@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from silcr.common import run_layout
 from silcr.common.atomic_file import write_atomic
 
 
@@ -62,7 +63,7 @@ class LearnerCheckpoints:
     written when the schedule says, and a count of the writes that failed."""
 
     def __init__(self, run_dir: Path, resume: bool) -> None:
-        self.path = run_dir / "checkpoints" / "learner.pt"
+        self.path = run_layout.learner_checkpoint(run_dir)
         # --resume continues from a checkpoint when there is one, so the same command
         # serves a first start and every restart (launcher, sweep, docker restart policy).
         self.resumed = resume and self.path.exists()

@@ -19,6 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from silcr.common import protocol as P
+from silcr.common import run_layout
 from silcr.common import seeds
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
@@ -31,7 +32,6 @@ log = logging.getLogger("learner")
 
 
 #: The policy of the best evaluation so far, in the run directory.
-BEST_MODEL = "best.silcr"
 
 
 class Evaluations:
@@ -43,7 +43,7 @@ class Evaluations:
         self.evals = 0
         self.last_eval_return: float | None = None
         self.best_eval_return: float | None = None
-        self.best_path = run_dir / BEST_MODEL
+        self.best_path = run_layout.best_model(run_dir)
         self.last_eval_updates = -1  # the update count the last evaluation saw (not checkpointed)
         self.last_row: dict[str, Any] = {}  # the progress row the last evaluation wrote
         run_dir.mkdir(parents=True, exist_ok=True)

@@ -7,6 +7,8 @@ import math
 from pathlib import Path
 from typing import Any
 
+from silcr.common import run_layout
+
 #: The critics' health at the last update before the row (docs/algorithm.md, "Divergence"):
 #: `q_bound_exceeded` counts every update so far whose largest Q passed the soft-Q bound.
 DIVERGENCE_COLUMNS = ["q_mean", "q_max", "target_q_mean", "log_pi_mean", "q_bound", "q_bound_exceeded"]
@@ -43,7 +45,7 @@ PROGRESS_COLUMNS = [
 def read_rows(run_dir: Path) -> list[dict[str, str]]:
     """The rows of a run's progress.csv so far, as written (strings); none when it is missing or unreadable."""
     try:
-        with open(run_dir / "progress.csv", newline="") as f:
+        with open(run_layout.progress(run_dir), newline="") as f:
             return list(csv.DictReader(f))
     except (OSError, csv.Error):
         return []
@@ -54,7 +56,7 @@ class ProgressLog:
         from torch.utils.tensorboard import SummaryWriter  # imported late: it is slow to import
 
         run_dir.mkdir(parents=True, exist_ok=True)
-        self.csv_path = run_dir / "progress.csv"
+        self.csv_path = run_layout.progress(run_dir)
         new = not (resume and self.csv_path.exists())
         if not new:
             _upgrade_header(self.csv_path)
@@ -63,7 +65,7 @@ class ProgressLog:
         if new:
             self._csv.writeheader()
             self._file.flush()
-        self.tb = SummaryWriter(log_dir=str(run_dir / "tb"))
+        self.tb = SummaryWriter(log_dir=str(run_layout.tensorboard(run_dir)))
 
     def row(self, values: dict[str, Any]) -> None:
         clean = {k: ("" if isinstance(v, float) and not math.isfinite(v) else v) for k, v in values.items()}

@@ -26,6 +26,7 @@ import numpy as np
 import torch
 
 from silcr.common import protocol as P
+from silcr.common import run_layout
 from silcr.common.atomic_file import write_atomic
 from silcr.common.envs import EnvSpec
 
@@ -109,21 +110,21 @@ def training_state(run_dir: Path) -> dict[str, Any]:
     """A run's learner checkpoint and buffer checkpoint (`<run dir>/checkpoints/`), for `write`'s `training`."""
     from silcr.learner.checkpoint import load_checkpoint
 
-    ckpts = run_dir / "checkpoints"
-    if not (ckpts / "learner.pt").exists() or not (ckpts / "buffer.ckpt").exists():
+    learner, buffer = run_layout.learner_checkpoint(run_dir), run_layout.buffer_checkpoint(run_dir)
+    if not learner.exists() or not buffer.exists():
         raise ValueError("no training state to save: the model has not learned yet (or was loaded without it)")
-    return {"learner": load_checkpoint(ckpts / "learner.pt"),
-            "buffer": torch.frombuffer(bytearray((ckpts / "buffer.ckpt").read_bytes()), dtype=torch.uint8)}
+    return {"learner": load_checkpoint(learner),
+            "buffer": torch.frombuffer(bytearray(buffer.read_bytes()), dtype=torch.uint8)}
 
 
 def restore_training(training: dict[str, Any], run_dir: Path) -> int:
     """Write a file's training state as `run_dir`'s checkpoints, for --resume to continue; the env steps it had."""
     from silcr.learner.checkpoint import save_checkpoint
 
-    ckpts = run_dir / "checkpoints"
+    ckpts = run_layout.checkpoints(run_dir)
     if ckpts.exists() and any(ckpts.iterdir()):
         raise ValueError(f"run: {run_dir} already holds checkpoints; give another run name")
-    save_checkpoint(ckpts / "learner.pt", training["learner"])
+    save_checkpoint(run_layout.learner_checkpoint(run_dir), training["learner"])
     buffer = training["buffer"].numpy().tobytes()
-    write_atomic(ckpts / "buffer.ckpt", lambda f: f.write(buffer))
+    write_atomic(run_layout.buffer_checkpoint(run_dir), lambda f: f.write(buffer))
     return int(training["learner"]["counters"]["env_steps"])

@@ -24,6 +24,7 @@ from pathlib import Path
 
 import numpy as np
 
+from silcr.common import run_layout
 from silcr.common.algorithms import ALGORITHM_OPTIONS, ALGORITHMS
 from silcr.common.config import Config, absent_values
 
@@ -82,8 +83,8 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     try:
         # A run from before an option existed did what the option did when it was added (options
         # are added keeping the behaviour they replace), so a missing key reads as that value.
-        cfg = absent_values() | tomllib.loads((path / "config.toml").read_text())
-        with open(path / "progress.csv", newline="") as f:
+        cfg = absent_values() | tomllib.loads(run_layout.config(path).read_text())
+        with open(run_layout.progress(path), newline="") as f:
             all_rows = list(csv.DictReader(f))
     except FileNotFoundError as e:
         raise ValueError(f"{path} is not a run directory (missing {Path(e.filename).name})") from None

@@ -23,6 +23,7 @@ import threading
 from typing import Any, Callable
 
 from silcr.common import protocol as P
+from silcr.common import run_layout
 from silcr.common.config import Config, ConfigError
 from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT
 
@@ -44,7 +45,7 @@ class InProcessTraining:
         except RunInUse as e:
             raise RuntimeError(str(e)) from None
         try:
-            (cfg.run_dir / "logs").mkdir(parents=True, exist_ok=True)
+            run_layout.logs(cfg.run_dir).mkdir(parents=True, exist_ok=True)
             with self.component_logs():
                 self.run = SingleProcessRun(cfg)
         except ResumeError as e:
@@ -66,7 +67,7 @@ class InProcessTraining:
         from silcr.common.lifecycle import StopFlag
         from silcr.deploy.console import TrainingDisplay
 
-        self.cfg.save(self.cfg.run_dir / "config.toml")
+        self.cfg.save(run_layout.config(self.cfg.run_dir))
         stop = StopFlag()
         interrupted = threading.Event()
 
@@ -93,7 +94,7 @@ class InProcessTraining:
 
         with self.component_logs():
             if not self.run.learner.books.checkpoint():
-                raise OSError(f"the learner checkpoint could not be written to {self.cfg.run_dir / 'checkpoints'}")
+                raise OSError(f"the learner checkpoint could not be written to {run_layout.checkpoints(self.cfg.run_dir)}")
             snapshot.write(checkpoint_path(self.cfg), snapshot.take(self.run.replay))
 
     def close(self) -> None:
@@ -113,7 +114,7 @@ class InProcessTraining:
     def component_logs(self):
         """The components' INFO logs to <run dir>/logs/single-process.log, as `silcr train --single-process`
         writes them, without touching the caller's own logging."""
-        handler = logging.FileHandler(self.cfg.run_dir / "logs" / "single-process.log")
+        handler = logging.FileHandler(run_layout.logs(self.cfg.run_dir) / "single-process.log")
         handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s", "%H:%M:%S"))
         loggers = [logging.getLogger(name) for name in COMPONENT_LOGGERS]
         before = [(lg.level, lg.propagate) for lg in loggers]
@@ -177,11 +178,11 @@ class DistributedTraining:
             raise KeyboardInterrupt
         if code == EXIT_STALE_CHECKPOINT:
             raise OSError(f"the run ended but its final checkpoints could not be written (exit code {code}); the "
-                          f"checkpoints in {self.cfg.run_dir / 'checkpoints'} are stale (logs: {self.cfg.run_dir / 'logs'})")
+                          f"checkpoints in {run_layout.checkpoints(self.cfg.run_dir)} are stale (logs: {run_layout.logs(self.cfg.run_dir)})")
         if code not in (0, 130):
             raise RuntimeError(f"the distributed run ended with exit code {code}; the components' logs are in "
-                               f"{self.cfg.run_dir / 'logs'}")
-        final = load_checkpoint(self.cfg.run_dir / "checkpoints" / "learner.pt")
+                               f"{run_layout.logs(self.cfg.run_dir)}")
+        final = load_checkpoint(run_layout.learner_checkpoint(self.cfg.run_dir))
         return weights_from_checkpoint(final)[0], int(final["counters"]["env_steps"])
 
 

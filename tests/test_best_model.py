@@ -16,9 +16,11 @@ from silcr import SILCR, model_file
 from silcr.actor.policy import initial_weights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
-from silcr.learner.evaluations import BEST_MODEL, Evaluations
+from silcr.learner.evaluations import Evaluations
 from tests.helpers import REPO
 from tests.test_api import ENV, SMALL, _observations
+
+BEST_MODEL = "best.silcr"  # the name the README's run-directory table gives
 
 
 def test_a_run_keeps_the_policy_of_its_best_evaluation(tmp_path):
