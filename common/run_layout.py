@@ -14,6 +14,7 @@ CONFIG = "config.toml"            # the run's full config, written at launch; --
 PROGRESS = "progress.csv"         # one row per evaluation
 TENSORBOARD = "tb"
 LOGS = "logs"                     # one <component>.log per process
+SINGLE_PROCESS_LOG = "single-process.log"  # every component's log when they share one process
 CHECKPOINTS = "checkpoints"
 LEARNER_CHECKPOINT = "learner.pt"
 BUFFER_CHECKPOINT = "buffer.ckpt"
@@ -38,6 +39,10 @@ def tensorboard(run_dir: Path) -> Path:
 
 def logs(run_dir: Path) -> Path:
     return Path(run_dir) / LOGS
+
+
+def single_process_log(run_dir: Path) -> Path:
+    return logs(run_dir) / SINGLE_PROCESS_LOG
 
 
 def checkpoints(run_dir: Path) -> Path:

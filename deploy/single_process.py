@@ -158,7 +158,7 @@ def _run_single_process(cfg: Config) -> int:
     run_layout.logs(run_dir).mkdir(parents=True, exist_ok=True)
     cfg.save(run_layout.config(run_dir))
     # The log goes to a file, as each component's does in a distributed run; the terminal shows the display.
-    logging.basicConfig(level=logging.INFO, filename=run_layout.logs(run_dir) / "single-process.log", force=True,
+    logging.basicConfig(level=logging.INFO, filename=run_layout.single_process_log(run_dir), force=True,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
     print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), "
           f"{cfg.total_steps} env steps, single process)", flush=True)

@@ -114,7 +114,7 @@ class InProcessTraining:
     def component_logs(self):
         """The components' INFO logs to <run dir>/logs/single-process.log, as `silcr train --single-process`
         writes them, without touching the caller's own logging."""
-        handler = logging.FileHandler(run_layout.logs(self.cfg.run_dir) / "single-process.log")
+        handler = logging.FileHandler(run_layout.single_process_log(self.cfg.run_dir))
         handler.setFormatter(logging.Formatter("%(asctime)s %(name)s %(levelname)s %(message)s", "%H:%M:%S"))
         loggers = [logging.getLogger(name) for name in COMPONENT_LOGGERS]
         before = [(lg.level, lg.propagate) for lg in loggers]
