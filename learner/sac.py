@@ -15,7 +15,7 @@ Automatic temperature tuning (not in the paper, in the official code):
 
 Two options keep the critics bounded where constant labels let them run away (docs/algorithm.md,
 "Critics that stay bounded"); `SacHyper` leaves both off, `silcr train`'s `auto` turns both on for the
-algorithms with constant labels (`common.config.critics_of`), and each is one place below:
+algorithms whose labels lie in [0, 1] (silcr, sqil, ircr: `common.config.critics_of`), each one place below:
   --critic-norm layer    LayerNorm after each hidden layer of both critics (RLPD, Ball et al. 2023);
   --q-target-clip bound  (5)'s target clipped at the soft-Q bound the labels allow, `soft_q_bound`.
 
