@@ -28,15 +28,29 @@ def done_message(run_dir: Path) -> str:
     try:
         if rows and rows[-1].get("eval_return"):
             last = f" final evaluation {format_return(float(rows[-1]['eval_return']))} at {rows[-1]['env_steps']} env steps;"
-        evaluated = [r for r in rows if r.get("eval_return")]
-        if evaluated and run_layout.best_model(run_dir).exists():
-            best = max(evaluated, key=lambda r: float(r["eval_return"]))  # the first of equals, as the learner keeps
-            last += (f" best {format_return(float(best['eval_return']))} at {best['env_steps']} env steps, its policy in "
-                     f"{run_layout.best_model(run_dir)};")
     except ValueError:
         pass  # the line still says where to look
+    best = best_evaluation(run_dir)
+    if best is not None:
+        last += (f" best {format_return(float(best['return_mean']))} at {best['env_steps']} env steps, its policy in "
+                 f"{run_layout.best_model(run_dir)};")
     return (f"silcr train: done.{last} progress: {run_layout.progress(run_dir)}; "
             f"TensorBoard: tensorboard --logdir {run_layout.tensorboard(run_dir)}")
+
+
+def best_evaluation(run_dir: Path) -> dict[str, Any] | None:
+    """The evaluation that chose the run's best.silcr, as the file records it (progress.csv's highest row can be
+    newer than the file, when writing it failed), or None where there is no readable file."""
+    path = run_layout.best_model(run_dir)
+    if not path.exists():
+        return None
+    from silcr.model_file import ModelFileError, read  # torch: loaded only once a run has ended
+
+    try:
+        evaluation = read(path).get("evaluation")
+    except ModelFileError:
+        return None
+    return evaluation if isinstance(evaluation, dict) and {"return_mean", "env_steps"} <= set(evaluation) else None
 
 
 CHECKPOINT_FILES = {"learner": run_layout.learner_checkpoint, "buffer": run_layout.buffer_checkpoint}

@@ -355,8 +355,18 @@ def test_the_closing_line_gives_the_final_evaluation_with_digits_that_matter(tmp
     (tmp_path / "progress.csv").write_text("env_steps,eval_return\n6067,0.9549999999999998\n7150,0.0\n")
     assert "final evaluation 0.000 at 7150 env steps" in done_message(tmp_path)  # the last row, not the best
     assert "best" not in done_message(tmp_path)  # no best.silcr (a learner from before it): nothing to point to
-    (tmp_path / "best.silcr").write_bytes(b"")
+    (tmp_path / "best.silcr").write_bytes(b"")  # unreadable: no best claimed for it
+    assert "best" not in done_message(tmp_path)
+    import torch
+
+    def best_file(evaluation):
+        torch.save({"format": "silcr-model", "version": 1, "evaluation": evaluation}, tmp_path / "best.silcr")
+
+    best_file({"return_mean": 0.9549999999999998, "env_steps": 6067})
     assert f"best 0.955 at 6067 env steps, its policy in {tmp_path / 'best.silcr'};" in done_message(tmp_path)
+    # The file's own evaluation, not progress.csv's highest row: writing a later best can fail (a full disk).
+    best_file({"return_mean": 0.5, "env_steps": 3000})
+    assert "best 0.500 at 3000 env steps" in done_message(tmp_path)
     assert format_return(0.9549999) == "0.955" and format_return(1234.56) == "1234.6"
     assert done_message(tmp_path / "missing").startswith("silcr train: done. progress:")
 
