@@ -145,8 +145,9 @@ def run_once(program: str, cfg: PeerConfig, timeout: float = 3600) -> dict[str, 
                               env=_peer_env())
         counters = torch.load(run_layout.learner_checkpoint(runs_dir / "peer"), map_location="cpu",
                               weights_only=True)["counters"]
-        log_name = "single-process.log" if program == "single-process" else "learner.log"
-        account = learner_account((run_layout.logs(runs_dir / "peer") / log_name).read_text(errors="replace"))
+        log = run_layout.single_process_log(runs_dir / "peer") if program == "single-process" \
+            else run_layout.component_log(runs_dir / "peer", "learner")
+        account = learner_account(log.read_text(errors="replace"))
         shutil.rmtree(runs_dir, ignore_errors=True)  # its checkpoints: tens of MB a run
         work = {"updates": int(counters["updates"]), "env_steps": int(counters["env_steps"])} | account
     return {"program": program, "wall_s": wall, "cpu_s": cpu, **work}

@@ -41,6 +41,11 @@ def logs(run_dir: Path) -> Path:
     return Path(run_dir) / LOGS
 
 
+def component_log(run_dir: Path, name: str) -> Path:
+    """The log of one component's process (`router`, `buffer`, `learner`, `actor-0`, ...)."""
+    return logs(run_dir) / f"{name}.log"
+
+
 def single_process_log(run_dir: Path) -> Path:
     return logs(run_dir) / SINGLE_PROCESS_LOG
 

@@ -110,10 +110,13 @@ class LocalRun:
         self.restarts: dict[str, int] = {}
         self.logs = run_layout.logs(cfg.run_dir)
 
+    def log(self, name: str) -> Path:
+        return run_layout.component_log(self.cfg.run_dir, name)
+
     def start(self, role: str, cfg: Config, name: str) -> None:
         self.specs[name] = (role, cfg)
         p = self.ctx.Process(
-            target=component_main, args=(role, cfg.to_dict(), str(self.logs / f"{name}.log")), name=f"silcr-{name}"
+            target=component_main, args=(role, cfg.to_dict(), str(self.log(name))), name=f"silcr-{name}"
         )
         p.start()
         self.procs[name] = p
@@ -171,7 +174,7 @@ def _run_train(cfg: Config) -> int:
         while not port_in_use(cfg.zenoh_listen):
             if not run.procs["router"].is_alive() or time.monotonic() > deadline:
                 print(f"silcr train: error: the Zenoh router did not start on {cfg.zenoh_listen}:\n"
-                      f"{_tail(run.logs / 'router.log')}", file=sys.stderr)
+                      f"{_tail(run.log('router'))}", file=sys.stderr)
                 run.stop_all(order)
                 return 1
             time.sleep(0.1)
@@ -218,8 +221,8 @@ def _run_train(cfg: Config) -> int:
 
 def _cannot_start(run: LocalRun, name: str) -> str:
     """The one line a component that could not start logged ("cannot start: ...")."""
-    lines = [line for line in _tail(run.logs / f"{name}.log", 50).splitlines() if "cannot start: " in line]
-    why = lines[-1].split("cannot start: ", 1)[1] if lines else f"see {run.logs / (name + '.log')}"
+    lines = [line for line in _tail(run.log(name), 50).splitlines() if "cannot start: " in line]
+    why = lines[-1].split("cannot start: ", 1)[1] if lines else f"see {run.log(name)}"
     return f"{name} cannot start: {why}"
 
 
@@ -277,7 +280,7 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     if time.monotonic() - clean_exit_seen[name] < STOP_GRACE_S:
                         continue
                 display.stop()
-                print(f"silcr train: {name} exited with code {p.exitcode}; last lines of {run.logs / (name + '.log')}:\n"
-                      f"{_tail(run.logs / (name + '.log'))}", file=sys.stderr)
+                print(f"silcr train: {name} exited with code {p.exitcode}; last lines of {run.log(name)}:\n"
+                      f"{_tail(run.log(name))}", file=sys.stderr)
                 return 1
             time.sleep(0.25)
