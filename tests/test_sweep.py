@@ -39,6 +39,12 @@ def test_shipped_experiments_are_valid(path):
     assert len({c.name for c in cells}) == len(cells)
 
 
+@pytest.mark.parametrize("path", EXPERIMENTS, ids=[p.stem for p in EXPERIMENTS])
+def test_shipped_experiments_are_listed_in_the_docs(path):
+    # docs/experiments.md's table is where a user finds what each file is for and what it costs.
+    assert f"`experiments/{path.name}`" in (REPO / "docs" / "experiments.md").read_text()
+
+
 def test_a_variant_runs_only_its_own_seeds_and_only_takes_several_texts(tmp_path):
     path = tmp_path / "x.toml"
     path.write_text('tasks = ["Hopper-v5", "Swimmer-v5"]\nseeds = "0-2"\n[variants.silcr]\nalgo = "silcr"\n'
