@@ -17,18 +17,10 @@ import numpy as np
 from silcr import model_file
 from silcr.actor.policy import policy_for
 from silcr.common.envs import EnvSpec
-from silcr.learner.checkpoint import CheckpointError, checked_checkpoint, load_plain
-from silcr.learner.evaluate import weights_from_checkpoint
+from silcr.learner.checkpoint import CheckpointError
+from silcr.policy_commands import policy_weights
 
 TERMS = ("reward_survive", "reward_forward", "reward_ctrl", "reward_contact")
-
-
-def policy_of(path: Path):
-    payload = load_plain(path, CheckpointError, "checkpoint")
-    if model_file.is_model(payload):
-        payload = model_file.checked(payload, path)
-        return model_file.weights_of(payload["policy"]), str(payload["config"]["env"])
-    return weights_from_checkpoint(checked_checkpoint(payload, path))
 
 
 def episode(env, policy, spec: EnvSpec, seed: int) -> dict[str, float]:
@@ -56,7 +48,7 @@ def main() -> None:
     policies = []  # every file checked before any episode runs
     for path in args.checkpoints:
         try:
-            weights, env_id = policy_of(path)
+            weights, env_id = policy_weights(path)
         except (CheckpointError, model_file.ModelFileError) as e:
             parser.error(str(e))
         if not env_id.startswith("Humanoid-"):

@@ -8,24 +8,31 @@ import sys
 from pathlib import Path
 
 
-def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentParser):
-    """The checked `--episodes`, and the actor weights, env id and `EnvSpec` of `args.checkpoint`: a learner
-    checkpoint or a model file (`Model.save`, a run's best.silcr); exit 2 if unusable."""
+def policy_weights(path: Path):
+    """The actor weights and env id of a learner checkpoint or a model file (`Model.save`, a run's best.silcr).
+    Raises `CheckpointError` or `ModelFileError`, each one line naming the file and the problem."""
     from silcr import model_file
-    from silcr.common.envs import EnvSpec
     from silcr.learner.checkpoint import CheckpointError, checked_checkpoint, load_plain
     from silcr.learner.evaluate import weights_from_checkpoint
 
+    payload = load_plain(path, CheckpointError, "checkpoint")
+    if model_file.is_model(payload):
+        payload = model_file.checked(payload, path)
+        return model_file.weights_of(payload["policy"]), str(payload["config"]["env"])
+    return weights_from_checkpoint(checked_checkpoint(payload, path))
+
+
+def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentParser):
+    """The checked `--episodes`, and the actor weights, env id and `EnvSpec` of `args.checkpoint`; exit 2 if
+    unusable."""
+    from silcr import model_file
+    from silcr.common.envs import EnvSpec
+    from silcr.learner.checkpoint import CheckpointError
+
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
-    path = Path(args.checkpoint)
     try:
-        payload = load_plain(path, CheckpointError, "checkpoint")
-        if model_file.is_model(payload):
-            payload = model_file.checked(payload, path)
-            weights, env_id = model_file.weights_of(payload["policy"]), str(payload["config"]["env"])
-        else:
-            weights, env_id = weights_from_checkpoint(checked_checkpoint(payload, path))
+        weights, env_id = policy_weights(Path(args.checkpoint))
     except (CheckpointError, model_file.ModelFileError) as e:
         parser.error(str(e))
     try:

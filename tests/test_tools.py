@@ -516,3 +516,44 @@ def test_a_record_without_a_newer_option_reads_as_what_it_ran(tmp_path, monkeypa
     monkeypatch.setitem(C.FIELDS, "critic_norm", changed)
     assert C.default_of("critic_norm") == "layer"
     assert load_run(d).config["critic_norm"] == "none"
+
+
+def _reward_terms_script():
+    import importlib.util
+
+    spec = importlib.util.spec_from_file_location("reward_terms", REPO / "experiments" / "humanoid-reward-terms.py")
+    module = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(module)
+    return module
+
+
+def test_humanoid_reward_terms_add_up_to_the_return_and_bad_files_exit_2(tmp_path):
+    import gymnasium as gym
+
+    from silcr import SAC
+    from silcr.actor.policy import policy_for
+    from silcr.common.envs import EnvSpec
+    from silcr.policy_commands import policy_weights
+
+    SAC("Humanoid-v5", runs_dir=tmp_path / "runs", reward="dense", hidden=(8, 8)).save(tmp_path / "h.silcr")
+    weights, env_id = policy_weights(tmp_path / "h.silcr")
+    spec = EnvSpec.of(env_id)
+    script = _reward_terms_script()
+    ep = script.episode(gym.make(env_id), policy_for(weights, spec), spec, seed=3)
+    # The split is only worth reading if no term is missing or counted twice.
+    assert ep["return"] == pytest.approx(sum(ep[t] for t in script.TERMS), rel=1e-9)
+    # Humanoid-v5 pays 5 a healthy step; the step on which it falls is not healthy.
+    assert ep["reward_survive"] == pytest.approx(5.0 * (ep["length"] - (not ep["full_length"])))
+    assert 1 <= ep["length"] <= 1000 and np.isfinite(ep["distance"])
+
+    run = [sys.executable, str(REPO / "experiments" / "humanoid-reward-terms.py")]
+    ok = subprocess.run(run + [str(tmp_path / "h.silcr"), "--episodes", "2"], capture_output=True, text=True, timeout=120)
+    assert ok.returncode == 0, ok.stderr
+    assert ok.stdout.splitlines()[-1].startswith(f"| {tmp_path / 'h.silcr'} |")
+    SAC("Pendulum-v1", runs_dir=tmp_path / "runs", reward="dense", hidden=(8, 8)).save(tmp_path / "p.silcr")
+    (tmp_path / "bad.pt").write_bytes(b"not a checkpoint")
+    for bad, why in (("bad.pt", "unreadable or corrupt"), ("p.silcr", "a Pendulum-v1 policy")):
+        r = subprocess.run(run + [str(tmp_path / "h.silcr"), str(tmp_path / bad)], capture_output=True, text=True,
+                           timeout=120)
+        assert r.returncode == 2 and why in r.stderr and "Traceback" not in r.stderr
+        assert r.stdout == ""  # refused before any episode or table line
