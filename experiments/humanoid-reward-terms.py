@@ -3,7 +3,14 @@ deterministic episodes, with the episode length and the distance walked, for one
 checkpoints or model files. A return near 5,000 can be a humanoid that stands for 1,000 steps (5 a
 step for staying healthy) or one that walks and falls; this tells the two apart.
 
+With `--records`, the arguments are run directories instead, and no policy runs: from progress.csv's
+in-run evaluations, per stretch of env steps, the mean evaluation length and the return above the
+healthy bonus per evaluation step, (return - 5 x length) / length, which is the forward reward less
+the costs. (A fall's last step pays no bonus, so for episodes that fall this understates that figure
+by 5 / length per step: under 0.05 for episodes of 100 steps or more.)
+
     python experiments/humanoid-reward-terms.py runs/humanoid-1m/*/checkpoints/learner.pt --episodes 20
+    python experiments/humanoid-reward-terms.py --records results/humanoid-1m/runs/*
 """
 
 from __future__ import annotations
@@ -19,8 +26,10 @@ from silcr.actor.policy import policy_for
 from silcr.common.envs import EnvSpec
 from silcr.learner.checkpoint import CheckpointError
 from silcr.policy_commands import policy_weights
+from silcr.runs import load_run
 
 TERMS = ("reward_survive", "reward_forward", "reward_ctrl", "reward_contact")
+HEALTHY_BONUS = 5.0  # Humanoid-v5's healthy_reward, paid for each step the humanoid is up
 
 
 def episode(env, policy, spec: EnvSpec, seed: int) -> dict[str, float]:
@@ -37,12 +46,52 @@ def episode(env, policy, spec: EnvSpec, seed: int) -> dict[str, float]:
                     "full_length": float(truncated)}
 
 
+def record_stretches(run_dir: Path, stretch: int) -> list[tuple[float, float]]:
+    """(mean evaluation length, return above the healthy bonus per evaluation step) for each stretch of
+    `stretch` env steps, from the run's in-run evaluations (rows a resume wrote again superseded, as
+    `silcr plot` does), up to the run's `total_steps`: the closing evaluation just past it is left out, and
+    a stretch with no evaluation yet (a run still going) gives NaNs."""
+    returns, lengths = load_run(run_dir, "eval_return"), load_run(run_dir, "eval_length")
+    if not np.array_equal(returns.steps, lengths.steps):
+        raise ValueError(f"{run_dir}: progress.csv's eval_return and eval_length rows differ")
+    if not returns.env.startswith("Humanoid-"):
+        raise ValueError(f"{run_dir}: a {returns.env} run; this script reads Humanoid's reward terms")
+    out = []
+    for k in range(-(-int(returns.config["total_steps"]) // stretch)):
+        inside = (returns.steps > k * stretch) & (returns.steps <= (k + 1) * stretch)
+        r, n = returns.returns[inside], lengths.returns[inside]
+        out.append((float(n.mean()), float((r - HEALTHY_BONUS * n).sum() / n.sum())) if inside.any() else (np.nan, np.nan))
+    return out
+
+
+def print_records(run_dirs: list[Path], stretch: int, parser: argparse.ArgumentParser) -> None:
+    try:
+        table = [(d, record_stretches(d, stretch)) for d in run_dirs]
+    except ValueError as e:
+        parser.error(str(e))
+    width = max(len(cells) for _, cells in table)
+    heads = [f"{k * stretch // 1000}k-{(k + 1) * stretch // 1000}k" for k in range(width)]
+    print(f"Each cell: mean evaluation length, return above the healthy bonus per evaluation step ({stretch:,} env steps a column)\n")
+    print("| run | " + " | ".join(heads) + " |")
+    print("|---|" + "---|" * width)
+    for d, cells in table:
+        print(f"| {d.name} | " + " | ".join("-" if np.isnan(n) else f"{n:.0f}, {x:.2f}" for n, x in cells) + " |" * (width - len(cells) + 1))
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("checkpoints", nargs="+", type=Path)
+    parser.add_argument("checkpoints", nargs="+", type=Path, help="learner checkpoints or model files; "
+                        "run directories with --records")
     parser.add_argument("--episodes", type=int, default=20)
     parser.add_argument("--seed", type=int, default=12345, help="first episode's seed (silcr eval's default)")
+    parser.add_argument("--records", action="store_true", help="read the runs' progress.csv instead of running policies")
+    parser.add_argument("--stretch", type=int, default=200_000, help="env steps per stretch with --records")
     args = parser.parse_args()
+    if args.records:
+        if args.stretch < 1:
+            parser.error(f"--stretch must be >= 1, got {args.stretch}")
+        print_records(args.checkpoints, args.stretch, parser)
+        return
     if args.episodes < 1:
         parser.error(f"--episodes must be >= 1, got {args.episodes}")
     policies = []  # every file checked before any episode runs

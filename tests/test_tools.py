@@ -557,3 +557,21 @@ def test_humanoid_reward_terms_add_up_to_the_return_and_bad_files_exit_2(tmp_pat
                            timeout=120)
         assert r.returncode == 2 and why in r.stderr and "Traceback" not in r.stderr
         assert r.stdout == ""  # refused before any episode or table line
+
+
+def test_humanoid_reward_terms_from_records_per_stretch_with_resumed_rows_superseded(tmp_path):
+    d = tmp_path / "silcr_Humanoid-v5_s0"
+    d.mkdir()
+    Config(run=d.name, env="Humanoid-v5", algo="silcr", seed=0, total_steps=600_000).save(d / "config.toml")
+    rows = ["time,env_steps,updates,policy_version,eval_return,eval_length",
+            "0,100000,1,0,600,100", "0,150000,1,0,1800,300",  # stretch 1: (100 + 300) above the bonus over 400 steps
+            "0,250000,1,0,99999,1000",  # lost with the run's last checkpoint: the resume writes 250k again
+            "0,200000,1,0,900,100", "0,250000,1,0,5000,1000"]  # stretch 1 gains 400 over 100; stretch 2: 0
+    (d / "progress.csv").write_text("\n".join(rows) + "\n")
+    out = _reward_terms_script().record_stretches(d, 200_000)
+    assert out[:2] == [(pytest.approx(500 / 3), pytest.approx(800 / 500)), (1000.0, 0.0)]
+    assert len(out) == 3 and np.isnan(out[2]).all()  # 400k-600k: no evaluation yet
+    r = subprocess.run([sys.executable, str(REPO / "experiments" / "humanoid-reward-terms.py"), "--records", str(d)],
+                       capture_output=True, text=True, timeout=120)
+    assert r.returncode == 0, r.stderr
+    assert r.stdout.splitlines()[-1] == "| silcr_Humanoid-v5_s0 | 167, 1.60 | 1000, 0.00 | - |"
