@@ -18,13 +18,13 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-import gymnasium as gym
 import numpy as np
 
 from silcr import model_file
 from silcr.actor.policy import policy_for
-from silcr.common.envs import EnvSpec
+from silcr.common.envs import EnvSpec, make_env
 from silcr.learner.checkpoint import CheckpointError
+from silcr.learner.evaluate import rollout
 from silcr.policy_commands import policy_weights
 from silcr.runs import load_run
 
@@ -33,17 +33,11 @@ HEALTHY_BONUS = 5.0  # Humanoid-v5's healthy_reward, paid for each step the huma
 
 
 def episode(env, policy, spec: EnvSpec, seed: int) -> dict[str, float]:
-    obs, info = env.reset(seed=seed)
-    x0, sums, steps, ret = info["x_position"], dict.fromkeys(TERMS, 0.0), 0, 0.0
-    while True:
-        action = spec.to_env_action(policy.deterministic(np.asarray(obs, np.float32)[None]))[0]
-        obs, reward, terminated, truncated, info = env.step(action)
-        steps, ret = steps + 1, ret + float(reward)
-        for term in TERMS:
-            sums[term] += float(info[term])
-        if terminated or truncated:
-            return {"return": ret, **sums, "length": steps, "distance": float(info["x_position"] - x0),
-                    "full_length": float(truncated)}
+    infos: list[dict] = []  # the reset's, then one a step
+    ep = rollout(env, policy, spec, seed, infos=infos)
+    return {"return": ep.episode_return, **{term: sum(float(i[term]) for i in infos[1:]) for term in TERMS},
+            "length": ep.length, "distance": float(infos[-1]["x_position"] - infos[0]["x_position"]),
+            "full_length": float(ep.truncated)}
 
 
 def record_stretches(run_dir: Path, stretch: int) -> list[tuple[float, float]]:
@@ -107,7 +101,7 @@ def main() -> None:
           "forward a step | full-length episodes |")
     print("|---|---|---|---|---|---|---|---|---|---|")
     for path, weights, env_id in policies:
-        spec, env = EnvSpec.of(env_id), gym.make(env_id)
+        spec, env = EnvSpec.of(env_id), make_env(env_id, "dense")  # as `silcr eval` makes it
         policy = policy_for(weights, spec)
         eps = [episode(env, policy, spec, args.seed + i) for i in range(args.episodes)]
         mean = {k: float(np.mean([e[k] for e in eps])) for k in eps[0]}

@@ -15,15 +15,20 @@ from silcr.common.minigrid_obs import is_minigrid
 
 
 def rollout(env, policy: Policy, spec: EnvSpec, seed: int, deterministic: bool = True,
-            frames: list[np.ndarray] | None = None) -> P.Episode:
-    """One episode of `policy` on a dense-reward `env`, recorded whole (rendered into `frames` if given)."""
-    obs, _ = env.reset(seed=seed)
+            frames: list[np.ndarray] | None = None, infos: list[dict] | None = None) -> P.Episode:
+    """One episode of `policy` on a dense-reward `env`, recorded whole (rendered into `frames` if given; the
+    env's info dicts, the reset's first and then one a step, appended to `infos` if given)."""
+    obs, info = env.reset(seed=seed)
+    if infos is not None:
+        infos.append(info)
     rng = np.random.default_rng(seed)
     observations, actions, rewards = [np.asarray(obs, np.float32)], [], []
     terminated = truncated = False
     while not (terminated or truncated):
         a = policy.deterministic(obs) if deterministic else policy.sample(obs, rng)
-        obs, r, terminated, truncated, _ = env.step(spec.to_env_action(a))
+        obs, r, terminated, truncated, info = env.step(spec.to_env_action(a))
+        if infos is not None:
+            infos.append(info)
         observations.append(np.asarray(obs, np.float32))
         actions.append(np.asarray(a, spec.action_dtype))
         rewards.append(float(r))
