@@ -79,6 +79,8 @@ class Tables:
             "expert_episodes": heap.num_episodes if heap is not None else 0,
             "expert_min_return": P.finite_or_none(heap.min_return) if heap is not None else None,
             "expert_max_return": P.finite_or_none(heap.max_return) if heap is not None else None,
+            # D_E has turned an episode away for want of room: from then on its lowest return is a bar the agent set
+            "expert_full": bool(heap.filled) if heap is not None else False,
         }
 
     def locks(self) -> tuple:

@@ -84,18 +84,18 @@ _GASIL_OPTIONS = ("gasil_alpha", "gasil_reward", "disc_hidden", "disc_lr", "disc
 ALGORITHMS: dict[str, Algorithm] = {a.name: a for a in (
     Algorithm("silcr", "constant rewards: 0 for D_O rows, 1 for rows of the top-M D_E by return",
               "Chen and Lin (the paper)", expert="own", labels="constant", mixes_expert=True,
-              options=("expert_admission", "expert_init")),
+              options=("expert_admission", "expert_init", "bc_weight")),
     Algorithm("sac", "plain SAC on the env's reward (--reward dense or episodic), from D_O alone",
               "Haarnoja et al. 2018", expert="none", labels="env", mixes_expert=False),
     Algorithm("sqil", "constant rewards as SILCR, with D_E fixed to demonstrations (--demos)",
-              "Reddy et al. 2020", expert="demos", labels="constant", mixes_expert=True, options=("demos",),
+              "Reddy et al. 2020", expert="demos", labels="constant", mixes_expert=True, options=("demos", "bc_weight"),
               discrete=False),  # demonstration files hold continuous actions
     Algorithm("gasil", "SAC on the env's reward plus a discriminator's reward for looking like the top-M D_E",
               "Guo et al. 2018", expert="own", labels="env", mixes_expert=False, discriminator=True,
               options=_GASIL_OPTIONS, discrete=False),  # its discriminator reads continuous (s, a) pairs
     Algorithm("ircr", "each row labelled with its episode's return per step, min-max normalised over the episodes in "
               "D_O and D_E; top-M D_E by return, half of each batch from it",
-              "Gangwani et al. 2020", expert="own", labels="credit", mixes_expert=True),
+              "Gangwani et al. 2020", expert="own", labels="credit", mixes_expert=True, options=("bc_weight",)),
 )}
 
 DEFAULT = "silcr"

@@ -123,6 +123,11 @@ class Config:
                               f"({', '.join(a.name for a in algorithms.ALGORITHMS.values() if a.labels_bounded)}); "
                               "none: no clip; auto: bound for those algorithms when --gamma is below 1, else none",
                               choices=("auto", *Q_TARGET_CLIPS), absent="none")
+    bc_weight: float = _opt(0.0, {"train", "learner"}, "weight of a self-imitation behaviour-cloning term in the "
+                            "actor loss on each batch's D_E rows: bc_weight x mean |Q| x the mean squared distance "
+                            "between the policy's mean action and the row's action (TD3+BC's form, Fujimoto and Gu "
+                            "2021; self-imitation after Oh et al. 2018); 0: off, as in the paper (docs/algorithm.md, "
+                            "\"Keeping what D_E holds\")")
     tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
     total_steps: int = _opt(2_000_000, {"train", "learner", "buffer"}, "environment-step budget of the run (the buffer "
@@ -387,7 +392,7 @@ _AT_LEAST = {name: 1 for name in ("online_capacity", "expert_capacity", "total_s
                                   "batches_per_request", "requests_in_flight", "weights_poll_steps", "disc_batch_size",
                                   "disc_interval", "recent_window", "spi_tolerance")} | {
     "batch_size": 2, "eval_episodes": 0, "final_eval_episodes": 0, "disc_warmup": 0, "learning_starts": 0,
-    "actor_id": -1, "torch_threads": 0, "max_restarts": 0, "grad_clip": 0, "gasil_alpha": 0, "disc_grad_penalty": 0, "weights_fanout_mb_s": 0,
+    "actor_id": -1, "torch_threads": 0, "bc_weight": 0, "max_restarts": 0, "grad_clip": 0, "gasil_alpha": 0, "disc_grad_penalty": 0, "weights_fanout_mb_s": 0,
     "buffer_checkpoint_interval": 0}
 _AT_MOST = {"batches_per_request": 64}
 _ABOVE_ZERO = ("samples_per_insert", "lr", "init_alpha", "disc_lr", "stats_interval")

@@ -41,13 +41,28 @@ def rollout(env, policy: Policy, spec: EnvSpec, seed: int, deterministic: bool =
 
 
 class Evaluation(NamedTuple):
-    """A policy over a few episodes: dense return (mean, std), mean length, and the share of
-    episodes that reached the task's goal (`None` for a task without one: `EnvSpec.reached_goal`)."""
+    """A policy over a few episodes: dense return (mean, std), mean length, the share of episodes that
+    reached the task's goal (`None` for a task without one: `EnvSpec.reached_goal`), and the mean forward
+    velocity over every step (`None` for an env whose steps do not report `info["x_velocity"]`)."""
 
     mean: float
     std: float
     length: float
     success: float | None
+    x_velocity: float | None = None
+
+
+#: The key MuJoCo's locomotion envs (Hopper, Walker2d, HalfCheetah, Swimmer, Ant, Humanoid) report their
+#: torso's forward speed under, in m/s: what tells a walking robot from one that stands and earns the
+#: healthy bonus (RESULTS.md, "What the returns are made of").
+X_VELOCITY = "x_velocity"
+
+
+def mean_x_velocity(step_infos: list[dict]) -> float | None:
+    """The mean of `info["x_velocity"]` over the steps' info dicts (not the resets'); None if a step lacks it."""
+    if not step_infos or any(X_VELOCITY not in i for i in step_infos):
+        return None
+    return float(np.mean([i[X_VELOCITY] for i in step_infos]))
 
 
 def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None,
@@ -57,25 +72,35 @@ def evaluate(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video:
 
     With `video`, the first episode is rendered off-screen and written as MP4.
     """
-    return summary(evaluation_episodes(weights, spec, episodes, seed, video, deterministic), spec)
+    step_infos: list[dict] = []
+    eps = evaluation_episodes(weights, spec, episodes, seed, video, deterministic, step_infos)
+    return summary(eps, spec, step_infos)
 
 
-def summary(eps: list[P.Episode], spec: EnvSpec) -> Evaluation:
-    """Mean and std of the dense return, mean length and the goal's share over `eps`."""
+def summary(eps: list[P.Episode], spec: EnvSpec, step_infos: list[dict] | None = None) -> Evaluation:
+    """Mean and std of the dense return, mean length and the goal's share over `eps`, and the mean forward
+    velocity over `step_infos` (every step's info dict, as `evaluation_episodes` collects them)."""
     returns = [e.episode_return for e in eps]
     goals = [spec.reached_goal(e) for e in eps]
     success = None if None in goals else float(np.mean(goals))
-    return Evaluation(float(np.mean(returns)), float(np.std(returns)), float(np.mean([e.length for e in eps])), success)
+    return Evaluation(float(np.mean(returns)), float(np.std(returns)), float(np.mean([e.length for e in eps])), success,
+                      mean_x_velocity(step_infos or []))
 
 
 def evaluation_episodes(weights: P.Weights, spec: EnvSpec, episodes: int, seed: int, video: Path | None = None,
-                        deterministic: bool = True) -> list[P.Episode]:
-    """`evaluate`'s episodes, whole (episode i seeded `seed + i`)."""
+                        deterministic: bool = True, step_infos: list[dict] | None = None) -> list[P.Episode]:
+    """`evaluate`'s episodes, whole (episode i seeded `seed + i`); every step's info dict (not the resets')
+    appended to `step_infos` if given."""
     policy = policy_for(weights, spec)
     frames: list[np.ndarray] = []
     env = _render_env(spec.env_id) if video else make_env(spec.env_id, "dense")
+    eps = []
     try:
-        eps = [rollout(env, policy, spec, seed + i, deterministic, frames if video and i == 0 else None) for i in range(episodes)]
+        for i in range(episodes):
+            infos: list[dict] | None = [] if step_infos is not None else None
+            eps.append(rollout(env, policy, spec, seed + i, deterministic, frames if video and i == 0 else None, infos))
+            if step_infos is not None:
+                step_infos.extend(infos[1:])  # infos[0] is the reset's
     finally:
         env.close()
     if video:

@@ -34,6 +34,16 @@ log = logging.getLogger("learner")
 #: The policy of the best evaluation so far, in the run directory.
 
 
+def keep_ratio(eval_return: float, buffer_meta: dict[str, Any]) -> float | str:
+    """How much of what D_E holds the policy keeps: its mean evaluation return over D_E's lowest return. Empty
+    until D_E has filled (before that its lowest return is whatever arrived first, not a bar the agent set),
+    and where D_E's lowest return is not positive (a ratio to it says nothing)."""
+    lowest = buffer_meta.get("expert_min_return")
+    if not buffer_meta.get("expert_full") or lowest is None or lowest <= 0:
+        return ""
+    return eval_return / lowest
+
+
 class Evaluations:
     COUNTERS = ("next_eval", "evals", "last_eval_return", "best_eval_return")
 
@@ -73,9 +83,9 @@ class Evaluations:
         if episodes == 0:
             return
         t0 = time.monotonic()
-        mean, std, length, success = evaluate(weights, self.spec, episodes,
-                                              seeds.evaluation(self.cfg.seed, self.evals),
-                                              deterministic=not self.cfg.eval_stochastic)
+        mean, std, length, success, x_velocity = evaluate(weights, self.spec, episodes,
+                                                          seeds.evaluation(self.cfg.seed, self.evals),
+                                                          deterministic=not self.cfg.eval_stochastic)
         self.evals += 1
         self.last_eval_return = mean
         self.last_eval_updates = updates
@@ -90,6 +100,9 @@ class Evaluations:
             **{k: buffer_meta.get(k) for k in EXPERT_COLUMNS + ROLLOUT_COLUMNS},
             "eval_success": "" if success is None else success,
             "q_target_clipped": losses.get("q_target_clipped", float("nan")),
+            "eval_x_velocity": "" if x_velocity is None else x_velocity,
+            "keep_ratio": keep_ratio(mean, buffer_meta),
+            "bc_loss": losses.get("bc_loss", float("nan")),
         }
         self.progress.row(self.last_row)
         if self.best_eval_return is None or mean > self.best_eval_return:

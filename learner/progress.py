@@ -39,6 +39,11 @@ PROGRESS_COLUMNS = [
     "eval_success",  # share of evaluation episodes that reached the goal; empty for tasks without one (silcr 0.5)
     "q_target_clipped",  # share of the last update's TD targets cut at the soft-Q bound (--q-target-clip bound)
     *ROLLOUT_COLUMNS,
+    # mean info["x_velocity"] over the evaluation's steps (m/s); empty for envs without it (silcr 0.6)
+    "eval_x_velocity",
+    # eval_return over D_E's lowest return, once D_E has filled (`evaluations.keep_ratio`; silcr 0.6)
+    "keep_ratio",
+    "bc_loss",  # the last update's behaviour-cloning loss on D_E rows (--bc-weight above 0)
 ]
 
 
@@ -72,9 +77,11 @@ class ProgressLog:
         self._csv.writerow(clean)
         self._file.flush()
         step = int(values["env_steps"])
-        for k in ("eval_return", "eval_return_std", "eval_length", "eval_success"):
+        for k in ("eval_return", "eval_return_std", "eval_length", "eval_success", "eval_x_velocity"):
             if k in values and isinstance(values[k], (int, float)):
                 self.tb.add_scalar(f"eval/{k.removeprefix('eval_')}", values[k], step)
+        if isinstance(values.get("keep_ratio"), (int, float)):
+            self.tb.add_scalar("eval/keep_ratio", values["keep_ratio"], step)
 
     def scalars(self, values: dict[str, float], step: int) -> None:
         for k, v in values.items():

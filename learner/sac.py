@@ -19,6 +19,12 @@ algorithms whose labels lie in [0, 1] (silcr, sqil, ircr: `common.config.critics
   --critic-norm layer    LayerNorm after each hidden layer of both critics (RLPD, Ball et al. 2023);
   --q-target-clip bound  (5)'s target clipped at the soft-Q bound the labels allow, `soft_q_bound`.
 
+One option adds a term the paper does not have, for keeping what D_E holds (docs/algorithm.md, "Keeping what D_E
+holds"); off by default, one place below:
+  --bc-weight w  (6) plus w * mean|Q| * mean ||mu(s) - a||^2 over the batch's D_E rows (mu: the policy's mean
+                 action): self-imitation (Oh et al. 2018) in TD3+BC's form (Fujimoto and Gu 2021), where mean|Q|
+                 makes w free of the critics' scale (TD3+BC's alpha = 2.5 is w = 0.4).
+
 Details follow the official code (docs/algorithm.md lists them), except the
 tanh log-probability correction, computed by default in its exact stable form
 (see `Actor.sample`; `tanh_log_prob="official"` gives the official one): mean-squared
@@ -95,9 +101,13 @@ class Actor(nn.Module):
             return a, log_prob - (2.0 * (LOG2 - u - F.softplus(-2.0 * u))).sum(-1)
         return a, log_prob - torch.log(1.0 - a.pow(2) + 1e-6).sum(-1)  # the official code's form
 
+    def mean_action(self, obs: torch.Tensor) -> torch.Tensor:
+        """The policy's mean action tanh(mu(s)), differentiable (the behaviour-cloning term's)."""
+        return torch.tanh(self(obs)[0])
+
     @torch.no_grad()
     def act_deterministic(self, obs: torch.Tensor) -> torch.Tensor:
-        return torch.tanh(self(obs)[0])
+        return self.mean_action(obs)
 
 
 class TwinCritic(nn.Module):
@@ -167,6 +177,7 @@ class SacHyper:
     #: --q-target-clip bound: the largest label the rows can carry (1 for SILCR's, SQIL's and IRCR's
     #: labels), and the TD target is clipped at the soft-Q bound it allows; None: no clip
     target_reward_max: float | None = None
+    bc_weight: float = 0.0  # --bc-weight: the behaviour-cloning term on D_E rows in (6); 0: off
 
 
 #: An update counts as past the soft-Q bound when its largest Q exceeds the bound by
@@ -353,8 +364,10 @@ class Sac(SacState):
         # Divergence watch (`q_bound`): actions in [-1, 1]^d have at most d log 2 of entropy.
         self.watch = QBoundWatch(act_dim * LOG2, hp, device)
 
-    def update(self, obs, actions, rewards, next_obs, terminated, truncated) -> dict[str, torch.Tensor]:
-        """One SAC step on a batch of tensors already on `self.device` (rewards per eq. 3).
+    def update(self, obs, actions, rewards, next_obs, terminated, truncated,
+               expert_from: int | None = None) -> dict[str, torch.Tensor]:
+        """One SAC step on a batch of tensors already on `self.device` (rewards per eq. 3); rows from
+        `expert_from` on are D_E's (None: the batch has none).
 
         Returns the step's statistics as 0-dim tensors on the device: reading them
         (`as_floats`) waits for the device, so callers do it only when they report.
@@ -390,6 +403,9 @@ class Sac(SacState):
         a, logp = self.actor.sample(obs)
         q_pi = torch.min(*self.critic(obs, a))
         actor_loss = (alpha * logp - q_pi).mean()
+        if hp.bc_weight > 0 and expert_from is not None:  # --bc-weight: imitate D_E's actions, scaled by mean |Q|
+            bc_loss = F.mse_loss(self.actor.mean_action(obs[expert_from:]), actions[expert_from:])
+            actor_loss = actor_loss + hp.bc_weight * q_pi.detach().abs().mean() * bc_loss
         self.actor_opt.zero_grad(set_to_none=True)
         actor_loss.backward()
         for p in self.critic_params:
@@ -423,6 +439,8 @@ class Sac(SacState):
         }
         if hp.target_reward_max is not None:
             stats["q_target_clipped"] = clipped
+        if hp.bc_weight > 0 and expert_from is not None:
+            stats["bc_loss"] = bc_loss.detach()
         return stats
 
     def arch(self) -> dict:

@@ -159,7 +159,8 @@ class DiscreteSac(SacState):
     def arch(self) -> dict:
         return {"obs_dim": self.obs_dim, "n_actions": self.n_actions, "hidden": self.hidden, "action_kind": "discrete"}
 
-    def update(self, obs, actions, rewards, next_obs, terminated, truncated) -> dict[str, torch.Tensor]:
+    def update(self, obs, actions, rewards, next_obs, terminated, truncated,
+               expert_from: int | None = None) -> dict[str, torch.Tensor]:
         """One step on a batch of tensors on `self.device`; `actions` are action indices ((n,) or (n, 1))."""
         hp = self.hp
         alpha = self.log_alpha.exp().detach()

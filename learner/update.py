@@ -108,11 +108,14 @@ class Update:
         # --q-target-clip bound: the labels' largest value (config validation refuses it for env rewards)
         target_reward_max = LABEL_MAX if q_target_clip == "bound" else None
         if spec.discrete:
+            if cfg.bc_weight > 0:
+                raise ValueError(f"--bc-weight: {spec.env_id} has discrete actions; the behaviour-cloning term is "
+                                 f"for continuous ones")
             dhp = DiscreteSacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, cfg.target_entropy_scale,
                                    cfg.time_limit_terminal, cfg.absorbing_terminal, critic_norm, target_reward_max)
             return DiscreteSac(spec.obs_dim, spec.n_actions, cfg.hidden, dhp, self.device)
         hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
-                      cfg.tanh_log_prob, cfg.absorbing_terminal, critic_norm, target_reward_max)
+                      cfg.tanh_log_prob, cfg.absorbing_terminal, critic_norm, target_reward_max, cfg.bc_weight)
         return Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
 
     def _set_threads(self, spec: EnvSpec) -> int:
@@ -143,6 +146,8 @@ class Update:
     def train(self, reply: P.BatchReply, updates_done: int) -> int:
         """One update per batch of `reply` (`updates_done` updates came before); how many it made."""
         n, size = int(reply.meta["batches"]), int(reply.meta["batch_size"])
+        online = int(reply.meta.get("online_rows", size))  # each batch's first `online` rows are D_O's, the rest D_E's
+        expert_from = online if online < size else None
         if self.gasil is not None and reply.disc is None:
             raise BufferMismatch("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
                                  "or predates GASIL (start it with --algo gasil)")
@@ -163,7 +168,8 @@ class Update:
                         self._disc_last = self.gasil.update(d.expert_obs, d.expert_actions, d.recent_obs, d.recent_actions)
                     # r_D from the discriminator as it is now, for this batch only (never stored)
                     rewards, r_d_mean = self.gasil.shape(rewards, batch.obs[s], batch.actions[s])
-                self._last = self.sac.update(batch.obs[s], batch.actions[s], rewards, batch.next_obs[s], term[s], trunc[s])
+                self._last = self.sac.update(batch.obs[s], batch.actions[s], rewards, batch.next_obs[s], term[s], trunc[s],
+                                             expert_from)
                 if self.gasil is not None:
                     self._last |= self._disc_last | {"gasil_reward_mean": r_d_mean}
         if self.retimer is not None:

@@ -48,13 +48,14 @@ def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
 
     from silcr.learner.evaluate import evaluation_episodes, summary
 
+    step_infos: list[dict] = []
     try:
         eps = evaluation_episodes(weights, spec, args.episodes, args.seed, Path(args.video) if args.video else None,
-                                  not args.stochastic)
+                                  not args.stochastic, step_infos)
     except RuntimeError as e:
         print(f"silcr eval: error: {e}", file=sys.stderr)
         return 1
-    mean, std, length, success = summary(eps, spec)
+    mean, std, length, success, x_velocity = summary(eps, spec, step_infos)
     returns = [e.episode_return for e in eps]
     at_limit = sum(e.truncated for e in eps)
     if args.json:
@@ -64,6 +65,7 @@ def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
             "env": env_id, "policy_version": weights.version, "deterministic": not args.stochastic,
             "first_seed": args.seed, "return_mean": mean, "return_std": std, "return_median": float(np.median(returns)),
             "length_mean": length, "goal_share": success, "episodes_at_time_limit": at_limit,
+            "x_velocity_mean": x_velocity,
             "episodes": [{"seed": args.seed + i, "return": e.episode_return, "length": e.length,
                           "terminated": e.terminated, "truncated": e.truncated, "goal": spec.reached_goal(e)}
                          for i, e in enumerate(eps)],
@@ -75,7 +77,9 @@ def eval_command(args: argparse.Namespace, parser: argparse.ArgumentParser) -> i
     print(f"{env_id}, policy version {weights.version}{sampled}: return {mean:.1f} ± {std:.1f} over {args.episodes} "
           f"episodes (median {np.median(returns):.1f}, mean length {length:.0f}, {at_limit} of {len(eps)} ran to the "
           f"time limit)"
-          + ("" if success is None else f", goal reached in {success:.0%}") + (f"; video: {args.video}" if args.video else ""))
+          + ("" if success is None else f", goal reached in {success:.0%}")
+          + ("" if x_velocity is None else f", forward velocity {x_velocity:.2f} m/s")
+          + (f"; video: {args.video}" if args.video else ""))
     return 0
 
 
