@@ -80,7 +80,8 @@ class Tables:
             "expert_min_return": P.finite_or_none(heap.min_return) if heap is not None else None,
             "expert_max_return": P.finite_or_none(heap.max_return) if heap is not None else None,
             # D_E has turned an episode away for want of room: from then on its lowest return is a bar the agent set
-            "expert_full": bool(heap.filled) if heap is not None else False,
+            # (SQIL's demonstrations fill it exactly and are all it ever holds)
+            "expert_full": heap is not None and (heap.filled or self.algo.needs_demos),
         }
 
     def locks(self) -> tuple:
