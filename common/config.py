@@ -60,7 +60,9 @@ def _opt(default: Any, roles: frozenset[str] | set[str], help: str, **extra: Any
 class Config:
     # --- run and environment ------------------------------------------------
     run: str = _opt("", ALL | {"monitor"}, "run name; the Zenoh keys live under silcr/<run>/ (default: <env>-<algo>-<time> for train)")
-    runs_dir: str = _opt("runs", SERVICE, "directory holding one sub-directory per run")
+    runs_dir: str = _opt("runs", SERVICE | {"actor"}, "directory holding one sub-directory per run (an actor "
+                         "only reads <runs dir>/<run>/finished.json there, where the run directory is shared, and "
+                         "exits at once if the run is finished)")
     env: str = _opt("Hopper-v5", ALL, "gymnasium environment id: flat Box observations, Box (continuous) or Discrete "
                     "actions; MiniGrid-* tasks get a flat one-hot view (docs/algorithm.md)")
     algo: str = _opt(algorithms.DEFAULT, ALL, "; ".join(f"{a.name}: {a.summary}" for a in algorithms.ALGORITHMS.values())
@@ -130,9 +132,10 @@ class Config:
                             "\"Keeping what D_E holds\")")
     tanh_log_prob: str = _opt("exact", {"train", "learner"}, "log(1 - tanh(u)^2) in the policy's log-probability: exact (stable form) "
                               "or official (log(1 - a^2 + 1e-6), the official code's)", choices=TANH_LOG_PROB_FORMS)
-    total_steps: int = _opt(2_000_000, {"train", "learner", "buffer"}, "environment-step budget of the run (the buffer "
-                            "service makes the actors keep pace with the learner over its last stretch: docs/algorithm.md, "
-                            "'Rate control')")
+    total_steps: int = _opt(2_000_000, {"train", "learner", "buffer", "actor"}, "environment-step budget of the run "
+                            "(the buffer service makes the actors keep pace with the learner over its last stretch: "
+                            "docs/algorithm.md, 'Rate control'; an actor reads it only to tell whether a finished run's "
+                            "budget was raised)")
     weights_interval: int = _opt(50, {"train", "learner"}, "publish policy weights every N updates")
     weights_fanout_mb_s: float = _opt(100.0, {"train", "learner"}, "budget of the weights' traffic to all actors "
                                       "together, MB/s: a publication may follow the last after actors x its size / "

@@ -23,6 +23,7 @@ PIDS = "pids.json"                # which process is which component (multi-proc
 LOCK = ".lock"                    # held for the run's life (common/run_lock.py)
 SWEEP_LOG = "sweep.log"           # a sweep cell's console output
 SWEEP_DONE = "sweep-done.json"    # a sweep cell that finished: its exit status and minutes
+FINISHED = "finished.json"        # the run's budget is spent: where it finished (common/run_end.py)
 
 
 def config(run_dir: Path) -> Path:
@@ -80,3 +81,7 @@ def sweep_log(run_dir: Path) -> Path:
 
 def sweep_done(run_dir: Path) -> Path:
     return Path(run_dir) / SWEEP_DONE
+
+
+def finished(run_dir: Path) -> Path:
+    return Path(run_dir) / FINISHED

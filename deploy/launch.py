@@ -4,19 +4,24 @@
 process with `--single-process`, else as a router, a buffer service, a learner and the actors
 in processes of their own (`local.run_train`). Before anything starts it takes the run
 directory (one run per directory: `run_lock`) and, for a distributed run, checks that the
-router's port is free; either refusal raises before a file is written.
+router's port is free; either refusal raises before a file is written. With `--resume` on a run whose
+budget is spent it writes nothing at all: one line, and exit code 0 (`common/run_end.py`).
 """
 
 from __future__ import annotations
 
 from silcr.common.config import Config, ConfigError
 from silcr.common.run_lock import check_free, hold
+from silcr.learner.checkpoint import finished_run
 
 
 def train(cfg: Config) -> int:
     """Run `cfg` (already checked: `config.resolve`/`from_options` and `preflight.check`); raise
     RunInUse when another process holds its run directory, ConfigError when the router's port is taken."""
     check_free(cfg.run_dir)  # first: a live run of the same name is the likelier reason for a busy port
+    if cfg.resume and (done := finished_run(cfg)) is not None:  # the finished-run rule (common/run_end.py)
+        print(f"silcr train: {done.message()}", flush=True)
+        return 0
     if not cfg.single_process:
         from silcr.deploy.local import port_in_use
 

@@ -19,6 +19,7 @@ import time
 from typing import Any
 
 from silcr.common import protocol as P
+from silcr.common import run_end
 from silcr.common.algorithms import algorithm
 from silcr.common.clients import WeightsServer
 from silcr.common.config import Config
@@ -129,6 +130,7 @@ class Bookkeeping:
 
     def start(self) -> None:
         """Publish the first weights and, on a fresh start, evaluate the untrained policy (every curve's baseline)."""
+        run_end.unmark(self.cfg.run_dir)  # a finished run that goes on (a larger budget) is not finished any more
         self.publish_weights()
         if not self.resumed:
             self.evaluate()
@@ -142,7 +144,7 @@ class Bookkeeping:
             self.evaluations.scheduled(self.env_steps)
 
     def target_updates(self) -> int:
-        return int(max(0, self.cfg.total_steps - self.cfg.learning_starts) * self.cfg.samples_per_insert)
+        return run_end.target_updates(self.cfg)
 
     def done(self, starved: bool) -> bool:
         """The budget is spent: every step collected and trained on, or nothing more to be had (`starved`)."""
@@ -171,6 +173,13 @@ class Bookkeeping:
             log.error("the final checkpoint could not be written (%d checkpoint(s) failed): --resume would continue "
                       "from the last one that was", self.checkpoints.failed)
             return False
+        if finished:  # the finished-run rule: from now on a start with this budget changes nothing (run_end.py)
+            try:
+                run_end.mark(self.cfg.run_dir, run_end.Finished(self.cfg.run, self.env_steps, self.updates,
+                                                                self.cfg.total_steps))
+            except OSError as e:
+                log.error("could not record that the run finished (%s); a --resume would find the budget spent "
+                          "from the checkpoint's counters", e)
         return True
 
     # -- records ---------------------------------------------------------------------

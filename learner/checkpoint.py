@@ -17,8 +17,9 @@ from typing import Any
 
 import torch
 
-from silcr.common import run_layout
+from silcr.common import run_end, run_layout
 from silcr.common.atomic_file import write_atomic
+from silcr.common.config import Config
 
 
 class CheckpointError(RuntimeError):
@@ -56,6 +57,26 @@ def checked_checkpoint(payload: Any, path: Path) -> dict[str, Any]:
     if not isinstance(payload, dict) or not isinstance(payload.get("sac"), dict) or "counters" not in payload:
         raise CheckpointError(f"{path} is not a silcr learner checkpoint")
     return payload
+
+
+def finished_run(cfg: Config) -> run_end.Finished | None:
+    """How `cfg`'s run finished if a budget of `cfg.total_steps` is already spent there (the finished-run rule,
+    `common/run_end.py`): its finished.json, or for a run finished before that file existed, its learner
+    checkpoint's counters (every env step of the budget collected, every update it is due made). None when
+    the run can go on (or does not exist); an unreadable checkpoint is left to the learner to report."""
+    if run_end.read(cfg.run_dir) is not None:
+        return run_end.finished(cfg)
+    path = run_layout.learner_checkpoint(cfg.run_dir)
+    if not path.exists():
+        return None
+    try:
+        counters = load_checkpoint(path)["counters"]
+        env_steps, updates = int(counters["env_steps"]), int(counters["updates"])
+    except (CheckpointError, KeyError, TypeError, ValueError):
+        return None
+    if env_steps >= cfg.total_steps and updates >= run_end.target_updates(cfg):
+        return run_end.Finished(cfg.run, env_steps, updates, cfg.total_steps)
+    return None
 
 
 class LearnerCheckpoints:

@@ -15,6 +15,7 @@ import os
 import re
 import shlex
 import sys
+from silcr.common import run_end
 from silcr.common.commands import command  # noqa: F401  (tests and scripts import it from here)
 from silcr.common.config import ConfigError, add_options, resolve
 from silcr.deploy import preflight
@@ -275,6 +276,19 @@ def _main(argv: list[str] | None) -> int:
         if not args.stale_after > 0 or not args.timeout > 0:
             subs[role].error("--stale-after and --timeout must be > 0")
         return run_health(cfg, args.ready, args.stale_after, args.timeout)
+    if role in ("buffer", "learner", "actor"):
+        # The finished-run rule (common/run_end.py): an orchestrator that starts a component of a finished run again
+        # gets one line and exit 0, and nothing is retrained or rewritten. Actors have no --resume (they hold no
+        # state) and see the run directory only where it is shared (compose's volume): they read finished.json.
+        if role == "actor":
+            done = run_end.finished(cfg)
+        else:
+            from silcr.learner.checkpoint import finished_run  # torch: not for the actors
+
+            done = finished_run(cfg) if cfg.resume else None
+        if done is not None:
+            print(f"silcr {role}: {done.message()}", flush=True)
+            return 0
     stop = StopFlag().install_signal_handlers()
     if role == "monitor":
         from silcr.deploy.monitor import run_monitor

@@ -1,0 +1,74 @@
+"""The finished-run rule: a run whose budget is spent stays finished.
+
+When the learner has spent a run's budget and written its last checkpoint, it writes
+`<run dir>/finished.json` (the env steps and updates it finished at, and the budget).
+From then on, starting the run again with `--resume` (a launcher, a component, a sweep, a
+container that an orchestrator restarts) makes no update, writes no progress row and
+rewrites no checkpoint: it says so in one line and exits 0. Raising the budget
+(`--total-steps`, or the Python API's `learn(n)`) goes on as before, and the learner drops the
+file as it goes on.
+
+Runs finished before the file existed are recognised from the learner checkpoint's
+counters (`silcr.learner.checkpoint.finished_run`): every env step of the budget collected
+and every update it is due made.
+
+Why exit 0 rather than idle: a component that exits 0 is one that every orchestrator leaves
+stopped (compose's `restart: on-failure`, a Kubernetes Job, Slurm), so nothing retrains the
+run, and an exit code is what they read (docs/deployment.md, "When a run ends").
+"""
+
+from __future__ import annotations
+
+import json
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+from silcr.common import run_layout
+from silcr.common.atomic_file import write_atomic
+from silcr.common.config import Config
+
+
+@dataclass(frozen=True)
+class Finished:
+    """Where a run's budget was spent."""
+
+    run: str
+    env_steps: int
+    updates: int
+    total_steps: int
+
+    def message(self) -> str:
+        return (f"run {self.run} already finished at {self.env_steps} env steps; raise --total-steps to go on "
+                f"(it is {self.total_steps})")
+
+
+def mark(run_dir: Path, finished: Finished) -> None:
+    """Record that the run finished (atomically: a reader sees the whole file or none)."""
+    write_atomic(run_layout.finished(run_dir), lambda f: f.write(json.dumps(asdict(finished)).encode()))
+
+
+def unmark(run_dir: Path) -> None:
+    """The run goes on past its old budget: it is no longer finished."""
+    run_layout.finished(run_dir).unlink(missing_ok=True)
+
+
+def read(run_dir: Path) -> Finished | None:
+    """The run's finished.json, or None when there is none or it cannot be read as one."""
+    try:
+        data = json.loads(run_layout.finished(run_dir).read_text())
+        return Finished(str(data["run"]), int(data["env_steps"]), int(data["updates"]), int(data["total_steps"]))
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+
+
+def target_updates(cfg: Config) -> int:
+    """The updates a budget of `cfg.total_steps` env steps is due: `--samples-per-insert` per step after
+    `--learning-starts`."""
+    return int(max(0, cfg.total_steps - cfg.learning_starts) * cfg.samples_per_insert)
+
+
+def finished(cfg: Config) -> Finished | None:
+    """How `cfg`'s run finished, if its finished.json says a budget of `cfg.total_steps` is spent; else None.
+    (`silcr.learner.checkpoint.finished_run` also reads runs finished before the file existed.)"""
+    marked = read(cfg.run_dir)
+    return marked if marked is not None and marked.total_steps >= cfg.total_steps else None

@@ -1,0 +1,95 @@
+"""The finished-run rule (common/run_end.py): starting a finished run again, by any launcher or component, changes
+nothing and exits 0 with one line; raising the budget goes on. Real runs, real processes, real files."""
+
+from __future__ import annotations
+
+import hashlib
+import subprocess
+import sys
+
+import pytest
+
+from silcr.common import run_layout
+from tests.helpers import REPO, free_port
+
+ENV = "InvertedPendulum-v5"
+SMALL = ["--env", ENV, "--hidden", "16", "16", "--learning-starts", "300", "--expert-capacity", "1000",
+         "--batch-size", "64", "--eval-interval", "500", "--eval-episodes", "2", "--torch-threads", "1",
+         "--stats-interval", "0.3", "--spi-tolerance", "300"]
+
+
+def _silcr(*args: str, timeout: float = 180) -> subprocess.CompletedProcess:
+    return subprocess.run([sys.executable, "-m", "silcr.cli", *args], capture_output=True, text=True, cwd=REPO,
+                          timeout=timeout)
+
+
+def _fingerprint(run_dir) -> dict[str, str]:
+    """Every file of the run but the lock and the logs, by content."""
+    out = {}
+    for path in sorted(run_dir.rglob("*")):
+        rel = path.relative_to(run_dir)
+        if path.is_file() and rel.parts[0] not in (run_layout.LOGS, run_layout.LOCK):
+            out[str(rel)] = hashlib.sha256(path.read_bytes()).hexdigest()
+    return out
+
+
+@pytest.mark.parametrize("mode", ["single-process", "distributed"])
+def test_resume_of_a_finished_run_changes_nothing_and_exits_0(tmp_path, mode):
+    runs = tmp_path / "runs"
+    args = ["--run", "done", "--runs-dir", str(runs), "--total-steps", "1500", *SMALL]
+    args += ["--single-process"] if mode == "single-process" else ["--actors", "2", "--zenoh-listen",
+                                                                   f"tcp/127.0.0.1:{free_port()}"]
+    first = _silcr("train", *args)
+    assert first.returncode == 0, first.stderr
+    run_dir = runs / "done"
+    before = _fingerprint(run_dir)
+    assert {"progress.csv", "best.silcr", "checkpoints/learner.pt", "checkpoints/buffer.ckpt",
+            "finished.json"} <= before.keys()
+
+    again = _silcr("train", *args, "--resume")
+    assert again.returncode == 0, again.stderr
+    lines = again.stdout.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("silcr train: run done already finished at ") and \
+        "raise --total-steps to go on" in lines[0], again.stdout
+    assert _fingerprint(run_dir) == before  # no row, no checkpoint, no best.silcr, no config rewritten
+
+    # Each component an orchestrator would start again says the same and writes nothing.
+    for role, extra in (("learner", ["--hidden", "16", "16", "--learning-starts", "300", "--resume"]),
+                        ("buffer", ["--expert-capacity", "1000", "--learning-starts", "300", "--resume"]),
+                        ("actor", [])):
+        r = _silcr(role, "--run", "done", "--runs-dir", str(runs), "--env", ENV, "--total-steps", "1500", *extra,
+                   "--connect", f"tcp/127.0.0.1:{free_port()}", timeout=60)
+        assert r.returncode == 0 and r.stdout.startswith(f"silcr {role}: run done already finished at "), \
+            (role, r.stdout, r.stderr)
+    assert _fingerprint(run_dir) == before
+
+    # A larger budget goes on from there, and the run is finished again at the new budget.
+    rows_before = len((run_dir / "progress.csv").read_text().splitlines())
+    more = _silcr("train", *[a if a != "1500" else "2500" for a in args], "--resume")
+    assert more.returncode == 0, more.stderr
+    after = (run_dir / "progress.csv").read_text().splitlines()
+    assert len(after) > rows_before
+    assert int(after[-1].split(",")[1]) >= 2500
+    assert '"total_steps": 2500' in (run_dir / "finished.json").read_text()
+
+
+def test_a_run_finished_before_the_marker_existed_is_recognised_from_its_checkpoint(tmp_path):
+    runs = tmp_path / "runs"
+    args = ["--run", "old", "--runs-dir", str(runs), "--total-steps", "1200", "--single-process", *SMALL]
+    assert _silcr("train", *args).returncode == 0
+    run_dir = runs / "old"
+    (run_dir / "finished.json").unlink()  # as a run written by silcr 0.5 left it
+    before = _fingerprint(run_dir)
+    again = _silcr("train", *args, "--resume")
+    assert again.returncode == 0 and "already finished at " in again.stdout, again.stdout + again.stderr
+    assert _fingerprint(run_dir) == before
+
+
+def test_a_run_stopped_midway_is_not_finished(tmp_path):
+    """The rule must not stop a run that has budget left: its learner drops a stale finished.json as it goes on."""
+    runs = tmp_path / "runs"
+    args = ["--run", "part", "--runs-dir", str(runs), "--single-process", *SMALL]
+    assert _silcr("train", *args, "--total-steps", "1000").returncode == 0
+    more = _silcr("train", *args, "--total-steps", "1800", "--resume")
+    assert more.returncode == 0 and "already finished" not in more.stdout
+    assert '"total_steps": 1800' in (runs / "part" / "finished.json").read_text()
