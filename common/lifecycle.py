@@ -83,6 +83,14 @@ def caller_signal_handlers() -> Iterator[None]:
             signal.signal(signum, signal.SIG_DFL if handler is None else handler)
 
 
+def ignore_stop_signals() -> None:
+    """From now on SIGINT and SIGTERM change nothing (the work is done and on disk; the process is on its way
+    out). Only the main thread can set handlers; elsewhere (a component run inside a test) this does nothing."""
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGINT, signal.SIG_IGN)
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+
+
 def interrupt_on_ctrl_c() -> None:
     """Ctrl-C raises KeyboardInterrupt here, even where SIGINT came ignored from the parent (a
     shell's background job, `nohup`): the launchers' children stop on SIGINT whatever they

@@ -1,5 +1,8 @@
 """`silcr monitor`: read a running system's stats topics and show them.
 
+On a terminal, a live table; without one (a container's log, a pipe), one plain line per
+`--interval` seconds. Either way it ends with one line when the run finishes.
+
 It uses nothing but Zenoh and JSON, so it doubles as an example of an outside
 client of the stats contract (docs/protocol.md).
 """
@@ -14,6 +17,7 @@ import time
 from typing import Any
 
 from silcr.common import protocol as P
+from silcr.common.clients import stop_on_shutdown
 from silcr.common.lifecycle import StopFlag
 from silcr.common.zenoh_session import open_session, session_config
 
@@ -86,13 +90,45 @@ def _table(snap: dict[str, Any]):
     return t
 
 
+def plain_line(snap: dict[str, Any]) -> str:
+    """One line of the run's key figures: what `silcr monitor` prints per interval where there is no terminal
+    (`docker compose logs -f monitor`, `kubectl logs`)."""
+    b, lr, actors = snap["buffer"] or {}, snap["learner"] or {}, snap["actors"]
+    parts = [f"run {snap['run']}"]
+    if lr:
+        total = lr.get("total_steps")
+        parts.append(f"learner: env_steps {lr.get('env_steps')}" + (f"/{total}" if total else "")
+                     + f" updates {lr.get('updates')} updates_per_s {_fmt(lr.get('updates_per_s'))}"
+                     + f" last_eval_return {_fmt(lr.get('last_eval_return'))}")
+    if b:
+        parts.append(f"buffer: transitions_received {b.get('transitions_received')} episodes_received "
+                     f"{b.get('episodes_received')} expert_transitions {b.get('expert_transitions')} expert_min_return "
+                     f"{_fmt(b.get('expert_min_return'))} expert_max_return {_fmt(b.get('expert_max_return'))} "
+                     f"actors_alive {b.get('actors_alive')} actors_paused {b.get('actors_paused')}")
+    if actors:
+        parts.append(f"actors: {len(actors)} reporting, steps {sum(int(a.get('steps') or 0) for a in actors.values())}, "
+                     f"episodes {sum(int(a.get('episodes') or 0) for a in actors.values())}")
+    if len(parts) == 1:
+        parts.append("no stats yet")
+    return " | ".join(parts)
+
+
+def finished_line(snap: dict[str, Any]) -> str:
+    lr = snap["learner"] or {}
+    return (f"run {snap['run']} finished at {lr.get('env_steps')} env steps, {lr.get('updates')} updates; last "
+            f"evaluation {_fmt(lr.get('last_eval_return'))}")
+
+
 def _fmt(v: Any) -> str:
     if isinstance(v, float):
         return f"{v:,.3f}" if abs(v) < 100 else f"{v:,.1f}"
     return str(v)
 
 
-def run_monitor(run: str, connect: list[str], mode: str, zenoh_config: str, once: bool, as_json: bool, timeout: float, stop: StopFlag) -> int:
+def run_monitor(run: str, connect: list[str], mode: str, zenoh_config: str, once: bool, as_json: bool, timeout: float,
+                stop: StopFlag, interval: float = 10.0) -> int:
+    """Show run `run`'s stats: once, as a live table on a terminal, or as one plain line every `interval` seconds
+    elsewhere; a live monitor ends, with one closing line, when the run finishes."""
     keys = P.Keys(run)
     snap = StatsSnapshot(keys)
     out = sys.stdout
@@ -124,9 +160,26 @@ def run_monitor(run: str, connect: list[str], mode: str, zenoh_config: str, once
 
                 Console().print(_table(s))
             return 0
-        from rich.live import Live
+        # The run's end: the learner's last stats say `finished`, and it announces the end on the shutdown key.
+        ended = StopFlag()
+        stop_on_shutdown(session, keys, ended)
 
-        with Live(_table(snap.as_dict()), refresh_per_second=2) as live:
-            while not stop.wait(1.0):
-                live.update(_table(snap.as_dict()))
+        def over() -> bool:
+            return ended.is_set() or bool((snap.as_dict()["learner"] or {}).get("finished"))
+
+        if not out.isatty():  # a container's log: one plain line per interval, not a live table
+            print(f"silcr monitor: run {run}, one line every {interval:g} s", file=out, flush=True)
+            while not stop.is_set() and not over():
+                if stop.wait(interval) or over():
+                    break
+                print(time.strftime("%H:%M:%S ") + plain_line(snap.as_dict()), file=out, flush=True)
+        else:
+            from rich.live import Live
+
+            with Live(_table(snap.as_dict()), refresh_per_second=2) as live:
+                while not stop.wait(1.0) and not over():
+                    live.update(_table(snap.as_dict()))
+        if over():
+            stop.wait(1.5)  # the learner's last stats message may follow the announcement
+            print(time.strftime("%H:%M:%S ") + finished_line(snap.as_dict()), file=out, flush=True)
     return 0

@@ -14,7 +14,7 @@ import time
 
 from silcr.common.clients import Shutdown, ZenohBatchStream, ZenohWeightsServer
 from silcr.common.config import Config
-from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag
+from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, ignore_stop_signals
 from silcr.common.role_session import role_session
 
 from .checkpoint import CheckpointError
@@ -65,6 +65,9 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         role.stats.put({"time": time.time(), "updates": books.updates, "policy_version": books.policy_version,
                         "env_steps": books.env_steps, "last_eval_return": books.evaluations.last_eval_return, "finished": finished})
         if finished:
+            # Everything is on disk: a stop signal now (compose's --abort-on-container-exit stops every container
+            # once one ends) must not turn a completed run's exit 0 into a death by signal.
+            ignore_stop_signals()
             shutdown.announce("finished")
         else:
             log.info("stopping (%s) at %d updates", stop.reason, books.updates)

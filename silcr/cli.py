@@ -157,6 +157,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--once", action="store_true", help="print one snapshot and exit")
             p.add_argument("--json", action="store_true", help="with --once: print the snapshot as JSON")
             p.add_argument("--timeout", type=float, default=5.0, help="with --once: seconds to wait for stats (default: 5)")
+            p.add_argument("--interval", type=float, default=10.0, metavar="S", help="without a terminal (a container's "
+                           "log): print one plain line of the run's figures every S seconds (default: 10)")
     return parser, subs
 
 
@@ -293,7 +295,10 @@ def _main(argv: list[str] | None) -> int:
     if role == "monitor":
         from silcr.deploy.monitor import run_monitor
 
-        return run_monitor(cfg.run, cfg.connect, cfg.zenoh_mode, cfg.zenoh_config, args.once, args.json, args.timeout, stop)
+        if not args.interval > 0:
+            subs[role].error(f"--interval: must be > 0, got {args.interval}")
+        return run_monitor(cfg.run, cfg.connect, cfg.zenoh_mode, cfg.zenoh_config, args.once, args.json, args.timeout,
+                           stop, args.interval)
     if role == "actor" and cfg.actor_id == -1:
         import secrets
 

@@ -10,7 +10,8 @@ import sys
 import pytest
 
 from silcr.common import run_layout
-from tests.helpers import REPO, free_port
+from silcr.deploy.local import port_in_use
+from tests.helpers import REPO, free_port, wait_for
 
 ENV = "InvertedPendulum-v5"
 SMALL = ["--env", ENV, "--hidden", "16", "16", "--learning-starts", "300", "--expert-capacity", "1000",
@@ -93,3 +94,27 @@ def test_a_run_stopped_midway_is_not_finished(tmp_path):
     more = _silcr("train", *args, "--total-steps", "1800", "--resume")
     assert more.returncode == 0 and "already finished" not in more.stdout
     assert '"total_steps": 1800' in (runs / "part" / "finished.json").read_text()
+
+
+def test_the_monitor_without_a_terminal_logs_plain_lines_and_ends_with_the_run(tmp_path):
+    """`docker compose logs -f monitor` read nothing: the live table drew only on a terminal. Without one, the
+    monitor prints a plain line per interval, and a closing line when the run finishes (then exits 0)."""
+    port = free_port()
+    runs = tmp_path / "runs"
+    train = subprocess.Popen([sys.executable, "-m", "silcr.cli", "train", "--run", "watched", "--runs-dir", str(runs),
+                              "--total-steps", "3000", "--actors", "2", "--zenoh-listen", f"tcp/127.0.0.1:{port}",
+                              *SMALL], cwd=REPO, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        wait_for(lambda: port_in_use(f"tcp/127.0.0.1:{port}"), 60, "the run's router")
+        monitor = subprocess.run([sys.executable, "-m", "silcr.cli", "monitor", "--run", "watched", "--connect",
+                                  f"tcp/127.0.0.1:{port}", "--zenoh-mode", "client", "--interval", "0.5"],
+                                 capture_output=True, text=True, cwd=REPO, timeout=240)
+        assert train.wait(120) == 0
+    finally:
+        train.kill()
+    assert monitor.returncode == 0, monitor.stderr
+    lines = monitor.stdout.splitlines()
+    figures = [line for line in lines if "learner: env_steps" in line and "buffer: transitions_received" in line]
+    assert len(figures) >= 3, monitor.stdout
+    assert "\x1b[" not in monitor.stdout  # no terminal codes in a log
+    assert "run watched finished at " in lines[-1] and "updates" in lines[-1], lines[-1]
