@@ -14,7 +14,8 @@ import logging
 import time
 
 from silcr.common import protocol as P
-from silcr.common.clients import Presence, SampleQuery, Throttle, ZenohReplayServer
+from silcr.common import run_end
+from silcr.common.clients import Presence, SampleQuery, Throttle, ZenohReplayServer, finished_reason
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.inbox import Inbox
@@ -78,6 +79,11 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
                 } | checkpoints.stats() | restored)
         server.close()
     written = checkpoints.final(replay)
+    if written and stop.reason == finished_reason() and run_end.read(cfg.run_dir) is None:
+        # The learner's run directory is not always this one (a claim of its own on Kubernetes): the buffer's
+        # records that the run finished too, so a buffer started again on it changes nothing (run_end.py).
+        run_end.mark(cfg.run_dir, run_end.Finished(cfg.run, replay.transitions_received,
+                                                   replay.sampler.batches_served, cfg.total_steps))
     log.info("buffer stopping (%s): %d episodes, %d transitions received, %d rejected, %d missing, %d batches served, "
              "%d of them after the last episode arrived", stop.reason, replay.intake.episodes_received,
              replay.transitions_received, sum(replay.intake.rejections.values()), replay.intake.episodes_missing,

@@ -749,6 +749,11 @@ class Shutdown:
         self._pub.put(P.ShutdownNotice(reason).encode())
 
 
+def finished_reason() -> str:
+    """The `StopFlag` reason a component stops with when the run's end was announced as finished."""
+    return f"shutdown message ({P.ShutdownNotice.FINISHED})"
+
+
 class ShutdownListener:
     """Sets `stop` when anyone announces the end of the run; a malformed announcement is counted
     (`rejections`, by reason) and ignored."""

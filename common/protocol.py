@@ -703,6 +703,9 @@ class ShutdownNotice:
 
     reason: str
 
+    #: the reason of the announcement that the run's budget is spent (the learner's, or a launcher's for it)
+    FINISHED = "finished"
+
     def encode(self) -> bytes:
         return _pack({"kind": "shutdown", "reason": self.reason})
 

@@ -72,3 +72,33 @@ def finished(cfg: Config) -> Finished | None:
     (`silcr.learner.checkpoint.finished_run` also reads runs finished before the file existed.)"""
     marked = read(cfg.run_dir)
     return marked if marked is not None and marked.total_steps >= cfg.total_steps else None
+
+
+#: How long a component that finds its run finished keeps announcing the end, so that the run's other processes
+#: started beside it (a router that follows the run, actors and a buffer that cannot see this run directory)
+#: hear it and exit too.
+ANNOUNCE_S = 20.0
+
+
+def announce(cfg: Config, seconds: float = ANNOUNCE_S) -> None:
+    """Announce the run's end on its shutdown key every second for `seconds`, best effort (no router: nothing)."""
+    import threading
+    import time
+
+    from silcr.common import protocol as P
+    from silcr.common.clients import Shutdown
+    from silcr.common.zenoh_session import open_session, session_config
+
+    def repeat() -> None:
+        try:
+            with open_session(session_config(cfg.connect, cfg.listen, cfg.zenoh_mode, cfg.zenoh_config)) as session:
+                shutdown, end = Shutdown(session, P.Keys(cfg.run)), time.monotonic() + seconds
+                while time.monotonic() < end:
+                    shutdown.announce(P.ShutdownNotice.FINISHED)
+                    time.sleep(1.0)
+        except Exception:  # no router, a bad endpoint: the others find out as they can (their own checks)
+            pass
+
+    worker = threading.Thread(target=repeat, daemon=True)
+    worker.start()
+    worker.join(seconds + 10.0)

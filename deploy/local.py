@@ -199,7 +199,7 @@ def _run_train(cfg: Config) -> int:
                 run.start("actor", acfg, name)
             code = _watch(run, cfg, stats)
             if code == 0:
-                Shutdown(session, keys).announce("finished")
+                Shutdown(session, keys).announce(P.ShutdownNotice.FINISHED)
     except KeyboardInterrupt:
         print("\nsilcr train: interrupted; stopping all components (Ctrl-C again to force)", file=sys.stderr)
         code = 130

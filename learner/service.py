@@ -12,6 +12,7 @@ import dataclasses
 import logging
 import time
 
+from silcr.common import protocol as P
 from silcr.common.clients import Shutdown, ZenohBatchStream, ZenohWeightsServer
 from silcr.common.config import Config
 from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, ignore_stop_signals
@@ -68,7 +69,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
             # Everything is on disk: a stop signal now (compose's --abort-on-container-exit stops every container
             # once one ends) must not turn a completed run's exit 0 into a death by signal.
             ignore_stop_signals()
-            shutdown.announce("finished")
+            shutdown.announce(P.ShutdownNotice.FINISHED)
         else:
             log.info("stopping (%s) at %d updates", stop.reason, books.updates)
     if mismatch:

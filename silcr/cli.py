@@ -144,6 +144,8 @@ def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.Argument
             p.add_argument("--listen", nargs="+", default=["tcp/127.0.0.1:7447"], help="endpoints to listen on")
             p.add_argument("--connect", nargs="+", default=[], help="other routers to connect to (multi-host)")
             p.add_argument("--zenoh-config", default="", help="Zenoh JSON5 config file")
+            p.add_argument("--run", default="", help="follow this run: exit 0 shortly after it finishes (a compose "
+                           "stack's router); empty: run until stopped")
             continue
         add_options(p, role)
         if role == "health":
@@ -243,11 +245,19 @@ def _main(argv: list[str] | None) -> int:
                     check_endpoint(endpoint)
                 except ValueError as e:
                     subs[role].error(f"{option}: {e}")
+        if args.run:
+            from silcr.common.protocol import validate_run_name
+
+            try:
+                validate_run_name(args.run)
+            except ValueError as e:
+                subs[role].error(f"--run: {e}")
         setup_logging("router")
         from silcr.deploy.router import run_router
 
         try:
-            return run_router(args.listen, args.connect, args.zenoh_config, StopFlag().install_signal_handlers())
+            return run_router(args.listen, args.connect, args.zenoh_config, StopFlag().install_signal_handlers(),
+                              args.run)
         except Exception as e:  # zenoh raises ZError for a port in use or a bad endpoint
             subs[role].exit(2, f"silcr router: error: {e}\n")
 
@@ -290,6 +300,8 @@ def _main(argv: list[str] | None) -> int:
             done = finished_run(cfg) if cfg.resume else None
         if done is not None:
             print(f"silcr {role}: {done.message()}", flush=True)
+            if role == "learner":  # the others hear it from the learner, as at the run's end
+                run_end.announce(cfg)
             return 0
     stop = StopFlag().install_signal_handlers()
     if role == "monitor":

@@ -5,7 +5,7 @@ No cluster runs here. `kubectl kustomize` renders each directory (kubectl has ku
 object is then loaded into the official `kubernetes` Python client's typed model, with a check that the
 model knows every field (the client itself ignores unknown ones, so a misspelt field would pass); the
 wiring is checked (clients name the router Service and its port, volumes and claims match, the actor
-Deployment's replicas scale the actors); and every container's command, environment and probes are
+Job's parallelism scales the actors, every part is a Job that a finished run leaves complete); and every container's command, environment and probes are
 parsed by silcr's own option parser, as tests/test_compose.py does for compose. What this cannot show:
 that a cluster schedules the pods, pulls the image, binds the claims, or that the network carries Zenoh.
 """
@@ -85,7 +85,7 @@ def _by(docs, kind):
 
 
 def _workloads(docs):
-    return {**_by(docs, "Deployment"), **_by(docs, "StatefulSet")}
+    return _by(docs, "Job")
 
 
 def _env(docs, container) -> dict[str, str]:
@@ -101,14 +101,15 @@ def _env(docs, container) -> dict[str, str]:
 def test_every_object_renders_and_is_valid_kubernetes(rendered):
     which, docs = rendered
     kinds = sorted(d["kind"] for d in docs)
-    assert kinds.count("Deployment") == 3 and kinds.count("StatefulSet") == 2 and kinds.count("Service") == 3
+    assert kinds.count("Job") == 5 and kinds.count("Service") == 1 and kinds.count("PersistentVolumeClaim") == 2
+    assert "Deployment" not in kinds and "StatefulSet" not in kinds
     for doc in docs:
         typed = _typed(doc)
         assert typed.metadata.name.startswith("silcr-")
     # the check would catch a misspelt field
-    bad = dict(_workloads(docs)["silcr-actor"], spec={**_workloads(docs)["silcr-actor"]["spec"], "replica": 3})
+    bad = dict(_workloads(docs)["silcr-actor"], spec={**_workloads(docs)["silcr-actor"]["spec"], "paralelism": 3})
     with pytest.raises(AssertionError, match="no field"):
-        strict(bad, "V1Deployment", "bad")
+        strict(bad, "V1Job", "bad")
 
 
 def test_clients_name_the_router_service_and_its_port(rendered):
@@ -131,13 +132,14 @@ def test_clients_name_the_router_service_and_its_port(rendered):
 def test_volumes_claims_and_config_maps_match(rendered):
     which, docs = rendered
     maps = set(_by(docs, "ConfigMap"))
+    claims = set(_by(docs, "PersistentVolumeClaim"))
+    claimed = []
     for name, workload in _workloads(docs).items():
         pod = workload["spec"]["template"]["spec"]
         volumes = {v["name"]: v for v in pod.get("volumes", [])}
-        claims = {c["metadata"]["name"] for c in workload["spec"].get("volumeClaimTemplates", [])}
         for container in pod["containers"]:
             for mount in container.get("volumeMounts", []):
-                assert mount["name"] in volumes or mount["name"] in claims, f"{name}: {mount['name']}"
+                assert mount["name"] in volumes, f"{name}: {mount['name']}"
             for source in container.get("envFrom", []):
                 assert source["configMapRef"]["name"] in maps
         for volume in volumes.values():
@@ -147,23 +149,26 @@ def test_volumes_claims_and_config_maps_match(rendered):
                 assert which == "tls" and volume["secret"]["secretName"] == "silcr-certs"
                 role = ROLES.get(name, "router")
                 assert {i["key"] for i in volume["secret"]["items"]} == {"ca.pem", f"{role}.key", f"{role}.pem"}
-        if workload["kind"] == "StatefulSet":
-            assert claims == {"runs"} and workload["spec"]["replicas"] == 1
-            assert workload["spec"]["serviceName"] in _by(docs, "Service")
-            mount = next(m for m in pod["containers"][0]["volumeMounts"] if m["name"] == "runs")
-            assert mount["mountPath"] == _env(docs, pod["containers"][0])["SILCR_RUNS_DIR"]
+            if "persistentVolumeClaim" in volume:  # the learner's and the buffer's run directories, one pod each
+                assert volume["persistentVolumeClaim"]["claimName"] in claims, f"{name}: {volume}"
+                assert workload["spec"]["parallelism"] == 1 and volume["name"] == "runs"
+                claimed.append(volume["persistentVolumeClaim"]["claimName"])
+                mount = next(m for m in pod["containers"][0]["volumeMounts"] if m["name"] == "runs")
+                assert mount["mountPath"] == _env(docs, pod["containers"][0])["SILCR_RUNS_DIR"]
+    assert sorted(claimed) == sorted(claims) == ["silcr-buffer-runs", "silcr-learner-runs"]  # one claim, one pod
 
 
-def test_the_actor_deployments_replicas_are_the_scaling_knob(rendered):
+def test_the_actor_jobs_parallelism_is_the_scaling_knob(rendered):
     _, docs = rendered
     actor = _workloads(docs)["silcr-actor"]
-    assert actor["kind"] == "Deployment" and actor["spec"]["replicas"] >= 1
+    # workers that end together: no completion count, so each pod's exit 0 at the run's end completes the Job
+    assert actor["kind"] == "Job" and actor["spec"]["parallelism"] >= 1 and "completions" not in actor["spec"]
     container = actor["spec"]["template"]["spec"]["containers"][0]
     args = container["args"]
     assert args[args.index("--actor-id") + 1] == "-1"  # replicas of one pod spec pick their own ids
     assert "ports" not in container and container["resources"]["requests"]["cpu"] == "1"
     assert sum(1 for w in _workloads(docs).values() if w["spec"]["template"]["metadata"]["labels"]
-               == actor["spec"]["selector"]["matchLabels"]) == 1  # `kubectl scale` reaches the actors only
+               == actor["spec"]["template"]["metadata"]["labels"]) == 1  # one kind of pod per Job
 
 
 def test_every_command_environment_and_probe_is_a_valid_silcr_command(rendered, monkeypatch):
@@ -226,3 +231,17 @@ def test_the_tls_overlays_zenoh_files_are_the_templates_with_the_clusters_paths(
     for role in ROLES.values():
         assert body(tls / f"{role}.json5") == filled((templates / "client-tls.json5").read_text(),
                                                      [("CERTS", "/certs"), ("ROLE", role)])
+
+
+def test_a_finished_run_leaves_every_job_complete(rendered):
+    """The finished-run rule on Kubernetes: every part of a run is a Job whose pods are restarted only on failure,
+    so a component that exits 0 at the run's end is done, and nothing retrains the run (a Deployment or a
+    StatefulSet restarts every pod that ends). The router follows the run and ends with it."""
+    _, docs = rendered
+    for name, job in _workloads(docs).items():
+        pod = job["spec"]["template"]["spec"]
+        assert pod["restartPolicy"] == "OnFailure" and job["spec"]["backoffLimit"] >= 1, name
+        assert job["spec"].get("completions", 1) == 1 or name == "silcr-actor"
+    router = _workloads(docs)["silcr-router"]["spec"]["template"]["spec"]["containers"][0]["args"]
+    env = _env(docs, _workloads(docs)["silcr-learner"]["spec"]["template"]["spec"]["containers"][0])
+    assert router[router.index("--run") + 1] == env["SILCR_RUN"]
