@@ -233,13 +233,38 @@ def option_name(name: str) -> str:
     return "--" + name.replace("_", "-")
 
 
+#: How `--help` groups the options (every option is in one group; tests/test_config_cli.py keeps it so).
+OPTION_GROUPS: dict[str, tuple[str, ...]] = {
+    "run": ("run", "runs_dir", "env", "algo", "reward", "seed", "total_steps", "device", "torch_threads",
+            "keep_denormals", "single_process", "max_restarts"),
+    "algorithm": ("gamma", "lr", "tau", "grad_clip", "init_alpha", "time_limit_terminal", "absorbing_terminal",
+                  "target_entropy_scale", "tanh_log_prob", "critic_norm", "q_target_clip", "bc_weight", "demos",
+                  "expert_init", "gasil_alpha", "gasil_reward", "disc_hidden", "disc_lr", "disc_grad_penalty",
+                  "disc_batch_size", "disc_interval", "disc_warmup", "recent_window"),
+    "networks": ("hidden", "weights_interval", "weights_fanout_mb_s", "weights_dtype"),
+    "buffers": ("online_capacity", "expert_capacity", "expert_admission", "expert_refill", "batch_size",
+                "max_episode_bytes"),
+    "rate control": ("learning_starts", "samples_per_insert", "spi_tolerance", "no_throttle", "batches_per_request",
+                     "requests_in_flight"),
+    "actors": ("actors", "actor_id", "envs_per_actor", "weights_poll_steps", "weights_wait"),
+    "evaluation": ("eval_interval", "eval_episodes", "final_eval_episodes", "eval_stochastic"),
+    "Zenoh": ("connect", "listen", "zenoh_mode", "actor_zenoh_mode", "zenoh_config", "zenoh_listen"),
+    "checkpoints": ("resume", "checkpoint_interval", "buffer_checkpoint_interval"),
+    "stats and health": ("stats_interval", "health_file"),
+}
+_GROUP_OF = {name: group for group, names in OPTION_GROUPS.items() for name in names}
+
+
 def add_options(parser: argparse.ArgumentParser, role: str) -> None:
-    """Add every option of `role` to `parser`, with SUPPRESS defaults so only given options override."""
+    """Add every option of `role` to `parser`, in its `OPTION_GROUPS` group, with SUPPRESS defaults so only given
+    options override."""
     parser.add_argument("--config", metavar="TOML", help="TOML file of options (keys as below, '-' or '_'); the command line wins")
-    for f in dataclasses.fields(Config):
+    taken = [f for f in dataclasses.fields(Config) if role in f.metadata["roles"]]
+    groups = {name: parser.add_argument_group(f"{name} options") for name in OPTION_GROUPS
+              if any(_GROUP_OF[f.name] == name for f in taken)}
+    for f in taken:
         meta = f.metadata
-        if role not in meta["roles"]:
-            continue
+        group = groups[_GROUP_OF[f.name]]
         default = f.default if f.default is not dataclasses.MISSING else f.default_factory()  # type: ignore[misc]
         kw: dict[str, Any] = {"default": argparse.SUPPRESS, "dest": f.name}
         if f.type in ("bool", bool):
@@ -258,7 +283,7 @@ def add_options(parser: argparse.ArgumentParser, role: str) -> None:
                 kw["metavar"] = "{" + ",".join(meta["choices"]) + "}"
             else:
                 kw["metavar"] = {int: "N", float: "X"}.get(elem, f.name.upper().split("_")[-1])
-        parser.add_argument(option_name(f.name), **kw)
+        group.add_argument(option_name(f.name), **kw)
 
 
 def _coerce(name: str, value: Any, where: str) -> Any:

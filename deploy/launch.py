@@ -12,13 +12,18 @@ from __future__ import annotations
 
 from silcr.common.config import Config, ConfigError
 from silcr.common.run_lock import check_free, hold
-from silcr.learner.checkpoint import finished_run
 
 
 def train(cfg: Config) -> int:
     """Run `cfg` (already checked: `config.resolve`/`from_options` and `preflight.check`); raise
     RunInUse when another process holds its run directory, ConfigError when the router's port is taken."""
     check_free(cfg.run_dir)  # first: a live run of the same name is the likelier reason for a busy port
+    if cfg.single_process:
+        from silcr.process_env import spin_in_single_process
+
+        spin_in_single_process()  # before torch loads (the finished-run check loads it): it owns the cores
+    from silcr.learner.checkpoint import finished_run
+
     if cfg.resume and (done := finished_run(cfg)) is not None:  # the finished-run rule (common/run_end.py)
         print(f"silcr train: {done.message()}", flush=True)
         return 0
@@ -29,9 +34,6 @@ def train(cfg: Config) -> int:
             raise ConfigError("--zenoh-listen", f"{cfg.zenoh_listen} is already in use (another run?); pick another port")
     with hold(cfg.run_dir):  # for the run's life: one run directory, one run
         if cfg.single_process:
-            from silcr.process_env import spin_in_single_process
-
-            spin_in_single_process()  # before torch loads: it owns the cores (silcr/__init__.py)
             from silcr.deploy.single_process import run_single_process
 
             return run_single_process(cfg)

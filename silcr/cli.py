@@ -41,6 +41,22 @@ class _Parser(argparse.ArgumentParser):
         self.exit(2, f"{self.prog}: error: {message}\n")
 
 
+def unrecognized(unknown: list[str], sub: argparse.ArgumentParser | None) -> str:
+    """The unrecognized arguments, and for a misspelt option the closest one `sub` takes."""
+    import difflib
+
+    text = f"unrecognized arguments: {' '.join(unknown)}"
+    if sub is None:
+        return text
+    options = [o for action in sub._actions for o in action.option_strings if o.startswith("--")]
+    for arg in unknown:
+        if arg.startswith("--"):
+            close = difflib.get_close_matches(arg.split("=", 1)[0], options, n=1, cutoff=0.75)
+            if close:
+                return f"{text} (did you mean {close[0]}?)"
+    return text
+
+
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
     parser = _Parser(prog="silcr", description="Distributed SILCR: self-imitation learning with constant reward.")
     from silcr.version import __version__
@@ -176,8 +192,12 @@ def main(argv: list[str] | None = None) -> int:
 
 def _main(argv: list[str] | None) -> int:
     parser, subs = build_parser()
-    args = parser.parse_args(argv)
+    args, unknown = parser.parse_known_args(argv)
     role = args.command
+    if unknown:
+        # Said by the subcommand that was given them (`silcr train: error: ...`), with the option meant if a
+        # known one is close (argparse reports them from the top parser, with no suggestion).
+        (subs[role] if role in subs else parser).error(unrecognized(unknown, subs.get(role)))
     if role is None:
         parser.print_help()
         return 2

@@ -104,7 +104,8 @@ def summary_markdown(runs: list[RunCurve], metric: str = "return", final_evals: 
                  if single == 0 else
                  f"{single} of the runs are `--single-process` (about one core each with one torch thread), the others "
                  "distributed (several cores each)")
-        lines += ["", f"Wall time: {sum(r.wall_s for r in runs) / 3600:.2f} h for the {len(runs)} runs together "
+        lines += ["", f"Wall time: {sum(r.wall_s for r in runs) / 3600:.2f} h for "
+                      f"{'the run' if len(runs) == 1 else f'the {len(runs)} runs together'} "
                       f"(each run's processes from start to end, every resumed stretch added and any pause included; "
                       f"{cores})."]
     return "\n".join(lines) + "\n"

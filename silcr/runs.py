@@ -80,6 +80,9 @@ def base_label(cfg: dict) -> str:
 
 
 def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
+    path = Path(path)
+    if path.is_file() and path.name in (run_layout.PROGRESS, run_layout.CONFIG):
+        path = path.parent  # what users type: runs/<run>/progress.csv stands for its run directory
     try:
         # A run from before an option existed did what the option did when it was added (options
         # are added keeping the behaviour they replace), so a missing key reads as that value.
@@ -88,6 +91,9 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
             all_rows = list(csv.DictReader(f))
     except FileNotFoundError as e:
         raise ValueError(f"{path} is not a run directory (missing {Path(e.filename).name})") from None
+    except NotADirectoryError:
+        raise ValueError(f"{path} is not a run directory (give the directory holding config.toml and "
+                         f"progress.csv)") from None
     except (tomllib.TOMLDecodeError, csv.Error, UnicodeDecodeError) as e:
         raise ValueError(f"{path}: unreadable run files ({e})") from None
     # `a/b` is one column over another, e.g. q_max/q_bound: how close the critics are to the soft-Q bound.

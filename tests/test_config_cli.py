@@ -252,3 +252,19 @@ def test_silcr_version_is_the_package_version():
     r = subprocess.run([sys.executable, "-m", "silcr.cli", "--version"], capture_output=True, text=True, cwd=REPO,
                        timeout=60)
     assert r.returncode == 0 and r.stdout.strip() == f"silcr {built}"
+
+
+def test_a_misspelt_option_is_named_by_its_subcommand_with_the_option_meant():
+    r = _cli("train", "--hiden", "64")
+    assert r.returncode == 2 and "Traceback" not in r.stderr
+    assert r.stderr.strip() == "silcr train: error: unrecognized arguments: --hiden 64 (did you mean --hidden?)"
+
+
+def test_help_groups_every_option():
+    from silcr.common.config import FIELDS, OPTION_GROUPS
+
+    grouped = [name for names in OPTION_GROUPS.values() for name in names]
+    assert sorted(grouped) == sorted(FIELDS)  # every option in exactly one group
+    r = _cli("train", "--help")
+    headings = [line for line in r.stdout.splitlines() if line.endswith(" options:")]
+    assert headings == [f"{group} options:" for group in OPTION_GROUPS]
