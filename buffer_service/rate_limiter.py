@@ -15,6 +15,10 @@ The window is at least one update wide and, because the learner can always be
 served part of a request, a paused actor always implies a learner that can
 sample: the two sides can never both wait (tests/test_rate_limiter.py).
 
+A budget spent during the warm-up (a run no longer than `min_size_to_sample`) pauses the actors
+at the budget: no update will ever need those transitions, and the actors otherwise ran
+unthrottled until the learner joined (5-9 s, twice the budget of a short run on a fast env).
+
 The run's end (`final_inserts`, the run's step budget): with the hysteresis alone, actors
 that outpace the learner sit at the window's top and are paused until the learner is back
 at the centre, so the last `tolerance` updates of a run trained on tables that no longer
@@ -97,8 +101,12 @@ class SamplesPerInsertLimiter:
 
     def inserts_paused(self) -> bool:
         """Whether actors should pause now (updates the hysteresis state)."""
-        if not self.throttle_inserts or self.warming_up():
+        if not self.throttle_inserts:
             self._paused = False
+        elif self.warming_up():
+            # No update can need more data than the budget: a budget spent before the learner may start (a run
+            # shorter than --learning-starts, a learner that has not joined yet) pauses the actors there.
+            self._paused = self.final_inserts is not None and self.inserts >= self.final_inserts
         elif self.at_the_end():
             self._paused = self.error > self.centre
         elif self._paused:

@@ -59,7 +59,7 @@ def _opt(default: Any, roles: frozenset[str] | set[str], help: str, **extra: Any
 @dataclass
 class Config:
     # --- run and environment ------------------------------------------------
-    run: str = _opt("", ALL | {"monitor"}, "run name; the Zenoh keys live under silcr/<run>/ (default: <env>-<algo>-<time> for train)")
+    run: str = _opt("", ALL | {"monitor"}, "run name; the Zenoh keys live under silcr/<run>/ (default: <env>-<algo>-<date>-<time>-<hex> for train)")
     runs_dir: str = _opt("runs", SERVICE | {"actor"}, "directory holding one sub-directory per run (an actor "
                          "only reads <runs dir>/<run>/finished.json there, where the run directory is shared, and "
                          "exits at once if the run is finished)")
@@ -387,10 +387,20 @@ def from_options(options: Mapping[str, Any], role: str, environ: Mapping[str, st
 def _checked(values: dict[str, Any], role: str) -> Config:
     cfg = Config(**values)
     if role == "train" and not cfg.run:
-        cfg.run = f"{cfg.env.replace('/', '_')}-{cfg.algo}-{time.strftime('%Y%m%d-%H%M%S')}"
+        cfg.run = default_run_name(cfg.env, cfg.algo)
     validate(cfg, role)
     cfg.critic_norm, cfg.q_target_clip = critics_of(cfg)  # config.toml records what ran, not "auto"
     return cfg
+
+
+def default_run_name(env: str, algo: str) -> str:
+    """`<env>-<algo>-<date>-<time>-<4 hex digits>`: the run name when none is given (the command line's and the
+    Python API's alike); the random end keeps two runs started in the same second apart."""
+    import re
+    import secrets
+
+    short = re.sub(r"[^A-Za-z0-9_.-]", "_", env.rsplit(":", 1)[-1].rsplit("/", 1)[-1])[:24]
+    return f"{short}-{algo}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(2)}"
 
 
 def critics_of(cfg: Config) -> tuple[str, str]:

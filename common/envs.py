@@ -169,6 +169,9 @@ class EnvSpec:
     max_episode_steps: int  # the time limit, or a generous bound (100,000) for an env without one
     time_limit: int | None = None
     n_actions: int = 0  # discrete actions: how many; 0 for continuous ones
+    #: the observations' bounds as the env declares them (None: unbounded, and specs saved before silcr 0.6)
+    obs_low: np.ndarray | None = None
+    obs_high: np.ndarray | None = None
 
     @property
     def discrete(self) -> bool:
@@ -217,14 +220,18 @@ class EnvSpec:
             else:
                 n, act_dim = 0, int(space.shape[0])
                 low, high = np.asarray(space.low, dtype=np.float32), np.asarray(space.high, dtype=np.float32)
-            return EnvSpec(env_id, int(env.observation_space.shape[0]), act_dim, low, high, int(limit or 100_000),
-                           limit, n)
+            obs = env.observation_space
+            return EnvSpec(env_id, int(obs.shape[0]), act_dim, low, high, int(limit or 100_000), limit, n,
+                           np.asarray(obs.low, np.float32), np.asarray(obs.high, np.float32))
         finally:
             env.close()
 
     @property
     def observation_space(self) -> gym.spaces.Box:
-        return gym.spaces.Box(-np.inf, np.inf, (self.obs_dim,), np.float32)
+        """The env's observations as it declares them (a flat Box; unbounded where the spec does not say)."""
+        if self.obs_low is None or self.obs_high is None:
+            return gym.spaces.Box(-np.inf, np.inf, (self.obs_dim,), np.float32)
+        return gym.spaces.Box(self.obs_low, self.obs_high, dtype=np.float32)
 
     @property
     def action_space(self) -> gym.spaces.Space:

@@ -121,8 +121,8 @@ class TrainingDisplay:
         ev = learner_stats.get("last_eval_return")
         ev_s = format_return(ev) if isinstance(ev, (int, float)) else "-"
         updates, version = learner_stats.get("updates", 0), learner_stats.get("policy_version", 0)
-        self._bar.update(self._task, completed=min(env_steps, self.total_steps), updates=updates, version=version,
-                         eval=ev_s)
+        # The count as it is: the actors finish the episodes they are in, so a run ends a little past its budget.
+        self._bar.update(self._task, completed=env_steps, updates=updates, version=version, eval=ev_s)
         if not self.interactive and time.monotonic() - self._last_print > 10:
             print(f"env steps {env_steps}/{self.total_steps}  updates {updates}  version {version}  eval {ev_s}",
                   flush=True)

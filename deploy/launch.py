@@ -10,13 +10,17 @@ budget is spent it writes nothing at all: one line, and exit code 0 (`common/run
 
 from __future__ import annotations
 
+from typing import Any, Callable
+
 from silcr.common.config import Config, ConfigError
 from silcr.common.run_lock import check_free, hold
 
 
-def train(cfg: Config) -> int:
+def train(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = None, who: str = "silcr train") -> int:
     """Run `cfg` (already checked: `config.resolve`/`from_options` and `preflight.check`); raise
-    RunInUse when another process holds its run directory, ConfigError when the router's port is taken."""
+    RunInUse when another process holds its run directory, ConfigError when the router's port is taken.
+    A distributed run gives `on_row` each new progress.csv row, typed, in this thread: False stops the run
+    cleanly (exit code 130), an exception stops it cleanly and is raised. `who` starts the lines it prints."""
     check_free(cfg.run_dir)  # first: a live run of the same name is the likelier reason for a busy port
     if cfg.single_process:
         from silcr.process_env import spin_in_single_process
@@ -25,7 +29,7 @@ def train(cfg: Config) -> int:
     from silcr.learner.checkpoint import finished_run
 
     if cfg.resume and (done := finished_run(cfg)) is not None:  # the finished-run rule (common/run_end.py)
-        print(f"silcr train: {done.message()}", flush=True)
+        print(f"{who}: {done.message()}", flush=True)
         return 0
     if not cfg.single_process:
         from silcr.deploy.local import port_in_use
@@ -39,4 +43,4 @@ def train(cfg: Config) -> int:
             return run_single_process(cfg)
         from silcr.deploy.local import run_train
 
-        return run_train(cfg)
+        return run_train(cfg, on_row, who)

@@ -1,8 +1,12 @@
 """`silcr train`: the whole system on one machine, one process per component.
 
-Starts a Zenoh router, the buffer service, the learner and N actors with the
-`spawn` start method (a forked child of a process with a Zenoh session hangs
-or talks to nobody), shows a progress bar fed by the stats topics, restarts a
+Starts a Zenoh router, the buffer service, the learner and N actors, each as a new
+Python process running this module (`python -m silcr.deploy.local`, given its role and
+its configuration on standard input): never a fork (a forked child of a process with a
+Zenoh session hangs or talks to nobody), and never a re-import of the caller's script
+(multiprocessing's `spawn` runs the `__main__` of a Python API user's script again in
+every child, and cannot at all for a script read from standard input). It shows a
+progress bar fed by the stats topics, restarts a
 component that dies (actors fresh, buffer and learner from their checkpoints, up
 to --max-restarts; the router too), and ends everything when the learner finishes, a component
 dies for good, or on Ctrl-C. Each
@@ -14,14 +18,14 @@ from __future__ import annotations
 
 import json
 import logging
-import multiprocessing as mp
 import os
 import signal
 import socket
+import subprocess
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 from silcr.common import protocol as P
 from silcr.common import run_layout
@@ -40,7 +44,7 @@ STOP_GRACE_S = 20.0
 
 
 def component_main(role: str, cfg_dict: dict[str, Any], log_path: str) -> None:
-    """Entry point of every child process (importable, as `spawn` requires)."""
+    """What every child process runs (`python -m silcr.deploy.local`, at the end of this file)."""
     fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
@@ -101,11 +105,47 @@ def _tail(path: Path, lines: int = 15) -> str:
         return "(no log)"
 
 
+class Component:
+    """One child process, with the few calls the launcher makes of it."""
+
+    def __init__(self, role: str, cfg: Config, log_path: Path) -> None:
+        # The child reads its configuration from standard input (as JSON: exactly these values, not the
+        # environment's SILCR_* again) before it sends its output to the log.
+        self._popen = subprocess.Popen([sys.executable, "-m", "silcr.deploy.local", role, str(log_path)],
+                                       stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        assert self._popen.stdin is not None
+        try:
+            self._popen.stdin.write(json.dumps(cfg.to_dict()).encode())
+            self._popen.stdin.close()
+        except BrokenPipeError:  # it died at once: its exit code says so
+            pass
+        self.pid = self._popen.pid
+
+    @property
+    def exitcode(self) -> int | None:
+        return self._popen.poll()
+
+    def is_alive(self) -> bool:
+        return self._popen.poll() is None
+
+    def terminate(self) -> None:
+        self._popen.terminate()
+
+    def kill(self) -> None:
+        self._popen.kill()
+
+    def join(self, timeout: float) -> None:
+        try:
+            self._popen.wait(timeout)
+        except subprocess.TimeoutExpired:
+            pass
+
+
 class LocalRun:
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
-        self.ctx = mp.get_context("spawn")
-        self.procs: dict[str, mp.process.BaseProcess] = {}
+        self.procs: dict[str, Component] = {}
+        self.failed_log: Path | None = None  # the log of the component whose death ended the run
         self.specs: dict[str, tuple[str, Config]] = {}
         self.restarts: dict[str, int] = {}
         self.logs = run_layout.logs(cfg.run_dir)
@@ -115,11 +155,7 @@ class LocalRun:
 
     def start(self, role: str, cfg: Config, name: str) -> None:
         self.specs[name] = (role, cfg)
-        p = self.ctx.Process(
-            target=component_main, args=(role, cfg.to_dict(), str(self.log(name))), name=f"silcr-{name}"
-        )
-        p.start()
-        self.procs[name] = p
+        self.procs[name] = Component(role, cfg, self.log(name))
         # For operators and tests: which PID is which component.
         pids = {n: proc.pid for n, proc in self.procs.items()} | {"train": os.getpid()}
         tmp = self.cfg.run_dir / ".pids.json.tmp"
@@ -147,12 +183,21 @@ def _sigterm_as_interrupt(signum: int, frame: object) -> None:
     raise KeyboardInterrupt
 
 
-def run_train(cfg: Config) -> int:
+RowCallback = Callable[[dict[str, Any]], bool]
+
+
+class StoppedByCaller(Exception):
+    """The caller's row callback said stop (returned False)."""
+
+
+def run_train(cfg: Config, on_row: RowCallback | None = None, who: str = "silcr train") -> int:
+    """The run to its end; its exit code. `on_row` gets every new progress.csv row (typed), from this thread: False
+    stops the run cleanly (130), an exception stops it cleanly and is raised. `who` starts every line printed."""
     with caller_signal_handlers():  # the caller's (the Python API's caller's: a notebook's, say) come back after
-        return _run_train(cfg)
+        return _run_train(cfg, on_row, who)
 
 
-def _run_train(cfg: Config) -> int:
+def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> int:
     run_dir = cfg.run_dir
     run_layout.logs(run_dir).mkdir(parents=True, exist_ok=True)
     cfg.save(run_layout.config(run_dir))  # the CLI checked the port and holds the run directory's lock
@@ -162,7 +207,7 @@ def _run_train(cfg: Config) -> int:
     run = LocalRun(cfg)
     actor_names = [f"actor-{i}" for i in range(cfg.actors)]
     order = [*actor_names, "learner", "buffer", "router"]
-    print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), {cfg.total_steps} env steps)")
+    print(f"{who}: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), {cfg.total_steps} env steps)")
     keys = P.Keys(cfg.run)
     stats = StatsSnapshot(keys)
     code = 0
@@ -173,7 +218,7 @@ def _run_train(cfg: Config) -> int:
         deadline = time.monotonic() + 15
         while not port_in_use(cfg.zenoh_listen):
             if not run.procs["router"].is_alive() or time.monotonic() > deadline:
-                print(f"silcr train: error: the Zenoh router did not start on {cfg.zenoh_listen}:\n"
+                print(f"{who}: error: the Zenoh router did not start on {cfg.zenoh_listen} ({run.log('router')}):\n"
                       f"{_tail(run.log('router'))}", file=sys.stderr)
                 run.stop_all(order)
                 return 1
@@ -186,22 +231,25 @@ def _run_train(cfg: Config) -> int:
             for role in ("buffer", "learner"):
                 run.start(role, child_cfg, role)
                 if cfg.resume and (failed := _wait_started(run, role, stats)):
-                    print(f"silcr train: error: {failed}", file=sys.stderr)
+                    print(f"{who}: error: {failed}", file=sys.stderr)
                     return 2
             actor_mode = actor_zenoh_mode(cfg)
             if actor_mode != cfg.zenoh_mode:
-                print(f"silcr train: the {cfg.actors} actors join as Zenoh {actor_mode}s of the router "
+                print(f"{who}: the {cfg.actors} actors join as Zenoh {actor_mode}s of the router "
                       f"(--actor-zenoh-mode {cfg.actor_zenoh_mode})")
             for i, name in enumerate(actor_names):
                 acfg = Config(**child_cfg.to_dict())
                 acfg.actor_id = i
                 acfg.zenoh_mode = actor_mode
                 run.start("actor", acfg, name)
-            code = _watch(run, cfg, stats)
+            code = _watch(run, cfg, stats, who, RowFeed(run_dir, on_row) if on_row is not None else None)
             if code == 0:
                 Shutdown(session, keys).announce(P.ShutdownNotice.FINISHED)
     except KeyboardInterrupt:
-        print("\nsilcr train: interrupted; stopping all components (Ctrl-C again to force)", file=sys.stderr)
+        print(f"\n{who}: interrupted; stopping all components (Ctrl-C again to force)", file=sys.stderr)
+        code = 130
+    except StoppedByCaller:
+        print(f"{who}: the callback stopped training; stopping all components", file=sys.stderr)
         code = 130
     finally:
         signal.signal(signal.SIGINT, signal.SIG_IGN)  # let the children finish their clean exit
@@ -215,8 +263,34 @@ def _run_train(cfg: Config) -> int:
     if code == 0:
         print(done_message(run_dir))
     elif code == 1:  # 2 (a component cannot start) has said its one line; 130 is Ctrl-C
-        print(f"silcr train: stopped with errors; logs in {run.logs}", file=sys.stderr)
+        print(f"{who}: stopped with errors; the cause is in {run.failed_log or run.logs}", file=sys.stderr)
     return code
+
+
+class RowFeed:
+    """Hands the caller each new progress.csv row, typed, from the launcher's own loop (the learner writes them in
+    its process); a row is read whole once the next one or the file's end follows it."""
+
+    def __init__(self, run_dir: Path, on_row: RowCallback) -> None:
+        from silcr.learner.progress import read_rows
+
+        self.run_dir, self.on_row, self._read = run_dir, on_row, read_rows
+        self.seen = len(read_rows(run_dir))  # a resumed run's earlier rows were told before
+        self._next = 0.0
+
+    def poll(self, now: bool = False) -> None:
+        """Feed the rows written since the last call (at most every half second unless `now`); StoppedByCaller
+        when the callback returns False."""
+        if not now and time.monotonic() < self._next:
+            return
+        self._next = time.monotonic() + 0.5
+        from silcr.learner.progress import typed
+
+        rows = self._read(self.run_dir)
+        for row in rows[self.seen:]:
+            self.seen += 1
+            if self.on_row(typed(row)) is False:
+                raise StoppedByCaller
 
 
 def _cannot_start(run: LocalRun, name: str) -> str:
@@ -242,22 +316,26 @@ def _wait_started(run: LocalRun, name: str, stats: StatsSnapshot, timeout_s: flo
     return None
 
 
-def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
-    """Follow the run until the learner finishes (0) or a component dies (1)."""
+def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot, who: str, rows: RowFeed | None) -> int:
+    """Follow the run until the learner finishes (0) or a component dies (1); feed `rows` on the way."""
     clean_exit_seen: dict[str, float] = {}
     with TrainingDisplay(cfg.total_steps) as display:
         while True:
+            if rows is not None:
+                rows.poll()
             snap = stats.as_dict()
             lr = snap["learner"] or {}
             display.show(max(int(lr.get("env_steps", 0)), int((snap["buffer"] or {}).get("transitions_received", 0))), lr)
             if run.procs["learner"].exitcode in (0, EXIT_STALE_CHECKPOINT):  # finished (stale: said at the end)
+                if rows is not None:
+                    rows.poll(now=True)  # the closing evaluation's row
                 return 0
             for name, p in list(run.procs.items()):
                 if p.exitcode is None:
                     continue
                 if p.exitcode == EXIT_CANNOT_START:  # it would fail the same way again: no restart
                     display.stop()
-                    print(f"silcr train: error: {_cannot_start(run, name)}", file=sys.stderr)
+                    print(f"{who}: error: {_cannot_start(run, name)}", file=sys.stderr)
                     return 2
                 if p.exitcode not in (0, EXIT_STALE_CHECKPOINT) and run.restarts.get(name, 0) < cfg.max_restarts:
                     # Actors hold no state that matters: start a fresh one (new incarnation). The
@@ -265,7 +343,7 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     # holds none: it comes back on the same endpoint, and every session reconnects
                     # and declares its subscribers, queryables and tokens again by itself.
                     run.restarts[name] = run.restarts.get(name, 0) + 1
-                    display.say(f"silcr train: {name} exited with code {p.exitcode}; restarting it "
+                    display.say(f"{who}: {name} exited with code {p.exitcode}; restarting it "
                                 f"({run.restarts[name]}/{cfg.max_restarts})")
                     role, acfg = run.specs[name]
                     if role in ("buffer", "learner"):
@@ -280,7 +358,12 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot) -> int:
                     if time.monotonic() - clean_exit_seen[name] < STOP_GRACE_S:
                         continue
                 display.stop()
-                print(f"silcr train: {name} exited with code {p.exitcode}; last lines of {run.log(name)}:\n"
+                run.failed_log = run.log(name)
+                print(f"{who}: {name} exited with code {p.exitcode}; last lines of {run.log(name)}:\n"
                       f"{_tail(run.log(name))}", file=sys.stderr)
                 return 1
             time.sleep(0.25)
+
+
+if __name__ == "__main__":  # a child of `LocalRun`: python -m silcr.deploy.local ROLE LOG_PATH < config.json
+    component_main(sys.argv[1], json.loads(sys.stdin.read()), sys.argv[2])

@@ -93,14 +93,21 @@ class SingleProcessRun:
     def run(self, stop: StopFlag, display: TrainingDisplay | None = None,
             evaluated: Callable[[dict[str, Any]], bool] | None = None) -> bool:
         """Step the actors, the learner and the schedules until the budget is spent (True) or `stop` is set or
-        `evaluated` (given each new progress row) returns False (False). The learner's last weights, evaluation
-        and checkpoint follow either way (`Learner.settle`); its records stay open for another `run`."""
+        `evaluated` (given each new progress row) returns False (False) or raises (raised again). The learner's
+        last weights, evaluation and checkpoint follow either way (`Learner.settle`); its records stay open for
+        another `run`."""
         cfg, replay, learner = self.cfg, self.replay, self.learner
         finished = False
+        raised: BaseException | None = None  # the callback's: raised once the learner has settled
         show = Every(cfg.stats_interval)
         while not stop.is_set():
-            if evaluated is not None and self._told(evaluated) is False:
-                break
+            if evaluated is not None:
+                try:
+                    if self._told(evaluated) is False:
+                        break
+                except Exception as e:
+                    raised = e
+                    break
             collecting = replay.transitions_received < cfg.total_steps
             if collecting:
                 for i, actor in enumerate(self.actors):
@@ -125,6 +132,8 @@ class SingleProcessRun:
         if display is not None:
             display.show(replay.transitions_received, learner.stats())
         self.checkpoint_written = learner.settle(finished)
+        if raised is not None:
+            raise raised
         if finished and evaluated is not None:
             self._told(evaluated)  # the closing evaluation
         return finished

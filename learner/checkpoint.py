@@ -45,7 +45,19 @@ def load_plain(path: Path, error: type[Exception], what: str) -> Any:
         raise error(f"{what} {path} holds objects other than tensors and plain data, which could run code when "
                     f"loaded; refused ({named[0]})") from None
     except Exception as e:  # torch raises several types for truncated or foreign files
+        if not _looks_like_torch(path):  # torch's own error for these says nothing useful ("KeyError: 101")
+            raise error(f"{what} {path} is not a file silcr wrote (not torch data)") from None
         raise error(f"{what} {path} is unreadable or corrupt ({type(e).__name__}: {e})") from None
+
+
+def _looks_like_torch(path: Path) -> bool:
+    """Whether the file starts as torch.save's files do: a zip archive (since torch 1.6) or a pickle."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4)
+    except OSError:
+        return False
+    return head.startswith(b"PK\x03\x04") or head[:1] == b"\x80"
 
 
 def load_checkpoint(path: Path) -> dict[str, Any]:

@@ -104,7 +104,7 @@ class Evaluations:
             "keep_ratio": keep_ratio(mean, buffer_meta),
             "bc_loss": losses.get("bc_loss", float("nan")),
         }
-        self.progress.row(self.last_row)
+        self.last_row = self.progress.row(self.last_row)  # as written: what a callback sees in either mode
         if self.best_eval_return is None or mean > self.best_eval_return:
             self.keep_best(weights, mean, std, episodes, row["env_steps"], updates)
         log.info("%s at %d env steps, %d updates: return %.1f +- %.1f over %d episodes (length %.0f%s, %.1fs)",
@@ -118,7 +118,8 @@ class Evaluations:
         evaluation = {"return_mean": mean, "return_std": std, "episodes": episodes, "env_steps": env_steps,
                       "updates": updates, "deterministic": not self.cfg.eval_stochastic}
         try:
-            write_model(self.best_path, self.cfg.algo, self.cfg.to_dict(), weights, self.spec, evaluation=evaluation)
+            write_model(self.best_path, self.cfg.algo, self.cfg.to_dict(), weights, self.spec, evaluation=evaluation,
+                        env_steps=env_steps)
         except (OSError, RuntimeError) as e:  # a full disk must not stop training: the next best tries again
             log.error("the best policy so far (return %.1f) could not be written to %s: %s", mean, self.best_path, e)
             return

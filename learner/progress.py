@@ -56,6 +56,20 @@ def read_rows(run_dir: Path) -> list[dict[str, str]]:
         return []
 
 
+def typed(row: dict[str, str]) -> dict[str, Any]:
+    """A progress.csv row as the learner wrote it: numbers as numbers (int where whole), "" where empty."""
+    out: dict[str, Any] = {}
+    for key, text in row.items():
+        try:
+            out[key] = int(text)
+        except (TypeError, ValueError):
+            try:
+                out[key] = float(text)
+            except (TypeError, ValueError):
+                out[key] = text
+    return out
+
+
 class ProgressLog:
     def __init__(self, run_dir: Path, resume: bool = False) -> None:
         from torch.utils.tensorboard import SummaryWriter  # imported late: it is slow to import
@@ -72,8 +86,11 @@ class ProgressLog:
             self._file.flush()
         self.tb = SummaryWriter(log_dir=str(run_layout.tensorboard(run_dir)))
 
-    def row(self, values: dict[str, Any]) -> None:
-        clean = {k: ("" if isinstance(v, float) and not math.isfinite(v) else v) for k, v in values.items()}
+    def row(self, values: dict[str, Any]) -> dict[str, Any]:
+        """Write one row; the row as written (a column of none, NaN or infinity is empty, ""), by column."""
+        clean = {k: ("" if v is None or isinstance(v, float) and not math.isfinite(v) else v)
+                 for k, v in values.items() if k in PROGRESS_COLUMNS}
+        clean = {k: clean.get(k, "") for k in PROGRESS_COLUMNS}
         self._csv.writerow(clean)
         self._file.flush()
         step = int(values["env_steps"])
@@ -82,6 +99,7 @@ class ProgressLog:
                 self.tb.add_scalar(f"eval/{k.removeprefix('eval_')}", values[k], step)
         if isinstance(values.get("keep_ratio"), (int, float)):
             self.tb.add_scalar("eval/keep_ratio", values["keep_ratio"], step)
+        return clean
 
     def scalars(self, values: dict[str, float], step: int) -> None:
         for k, v in values.items():

@@ -19,8 +19,6 @@ from __future__ import annotations
 
 import contextlib
 import re
-import secrets
-import time
 import warnings
 from pathlib import Path
 from typing import Any, Callable, ClassVar
@@ -29,7 +27,7 @@ import numpy as np
 
 import silcr.model_file as model_file
 from silcr.common.algorithms import ALGORITHMS
-from silcr.common.config import FIELDS, Config, ConfigError, absent_values, from_options
+from silcr.common.config import FIELDS, Config, ConfigError, absent_values, default_run_name, from_options
 from silcr.training import DistributedTraining, InProcessTraining
 
 #: Options the constructor's own arguments and `learn` set; passing them as options is refused.
@@ -98,8 +96,7 @@ def env_reference(env: Any, actors: int) -> str:
 
 
 def _run_name(algo: str, env_id: str) -> str:
-    short = re.sub(r"[^A-Za-z0-9_.-]", "_", env_id.rsplit(":", 1)[-1].rsplit("/", 1)[-1])[:24]
-    return f"{algo}-{short}-{time.strftime('%Y%m%d-%H%M%S')}-{secrets.token_hex(2)}"
+    return default_run_name(env_id, algo)  # the command line's scheme
 
 
 class Model:
@@ -129,6 +126,7 @@ class Model:
 
         cfg = _checked(values)
         self._start(cfg, actors, EnvSpec.of(cfg.env))
+        self._pick_port = "zenoh_listen" not in options  # a free port for each distributed learn
 
     def _start(self, cfg: Config, actors: int, spec: Any, weights: Any = None, steps: int = 0,
                trainable: bool = True) -> None:
@@ -138,6 +136,7 @@ class Model:
         self._steps = steps  # env steps trained on (a loaded or distributed model's; a live run counts its own)
         self._trainable = trainable
         self._rng = np.random.default_rng(cfg.seed)
+        self._pick_port = True
 
     # -- facts ------------------------------------------------------------------------------------
     @property
@@ -182,7 +181,14 @@ class Model:
             self._session.learn(on_row, progress_bar)
         else:
             self.cfg.resume = self._steps > 0 or self.cfg.resume  # a second learn goes on from the checkpoints
-            self._weights, self._steps = DistributedTraining(self.cfg).learn(on_row, progress_bar)
+            if self._pick_port:  # two models training at once must not meet on one port
+                self.cfg.zenoh_listen = f"tcp/127.0.0.1:{_free_port()}"
+            run = DistributedTraining(self.cfg)
+            try:
+                run.learn(on_row, progress_bar)
+            finally:  # also after Ctrl-C or a callback's exception: the model keeps what its checkpoint holds
+                if run.weights is not None:
+                    self._weights, self._steps = run.weights, run.env_steps
         return self
 
     # -- predict -----------------------------------------------------------------------------------
@@ -225,7 +231,8 @@ class Model:
             if self._session is not None:
                 self._session.checkpoint()  # both checkpoints hold this moment
             training = model_file.training_state(self.run_dir)
-        model_file.write(Path(path), self.algo, self.cfg.to_dict(), self.policy_weights(), self.spec, training)
+        model_file.write(Path(path), self.algo, self.cfg.to_dict(), self.policy_weights(), self.spec, training,
+                         env_steps=self.num_timesteps)
 
     @classmethod
     def load(cls, path: str | Path, env: str | Callable[[], Any] | None = None, *, include_training_state: bool = False,
@@ -245,7 +252,7 @@ class Model:
         if env is not None:
             cfg.env, spec = _env_like(env, actors, spec)
         cfg.device, cfg.runs_dir, cfg.run = device, str(runs_dir), run or _run_name(cls.algo, cfg.env)
-        steps = 0
+        steps = int(payload.get("env_steps", (payload.get("evaluation") or {}).get("env_steps", 0)))  # num_timesteps
         if include_training_state:
             if payload.get("training") is None:
                 raise model_file.ModelFileError(f"{path} was saved without its training state "
@@ -277,6 +284,14 @@ class Model:
 
     def __repr__(self) -> str:
         return f"{type(self).__name__}({self.env_id!r}, actors={self.actors}, run_dir={str(self.run_dir)!r})"
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
 
 
 def _env_like(env: Any, actors: int, saved: Any) -> tuple[str, Any]:

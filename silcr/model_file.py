@@ -42,12 +42,15 @@ def spec_dict(spec: EnvSpec) -> dict[str, Any]:
     return {"env_id": spec.env_id, "obs_dim": spec.obs_dim, "act_dim": spec.act_dim, "n_actions": spec.n_actions,
             "action_low": torch.from_numpy(np.array(spec.action_low, np.float32)),
             "action_high": torch.from_numpy(np.array(spec.action_high, np.float32)),
-            "max_episode_steps": spec.max_episode_steps, "time_limit": spec.time_limit}
+            "max_episode_steps": spec.max_episode_steps, "time_limit": spec.time_limit} | (
+        {} if spec.obs_low is None else {"obs_low": torch.from_numpy(np.array(spec.obs_low, np.float32)),
+                                         "obs_high": torch.from_numpy(np.array(spec.obs_high, np.float32))})
 
 
 def spec_of(d: dict[str, Any]) -> EnvSpec:
+    bounds = (d["obs_low"].numpy(), d["obs_high"].numpy()) if "obs_low" in d else (None, None)  # absent before 0.6
     return EnvSpec(d["env_id"], int(d["obs_dim"]), int(d["act_dim"]), d["action_low"].numpy(), d["action_high"].numpy(),
-                   int(d["max_episode_steps"]), d["time_limit"], int(d["n_actions"]))
+                   int(d["max_episode_steps"]), d["time_limit"], int(d["n_actions"]), *bounds)
 
 
 def policy_dict(w: P.Weights) -> dict[str, Any]:
@@ -61,11 +64,15 @@ def weights_of(d: dict[str, Any]) -> P.Weights:
 
 
 def write(path: Path, algo: str, config: dict[str, Any], weights: P.Weights, spec: EnvSpec,
-          training: dict[str, Any] | None = None, evaluation: dict[str, Any] | None = None) -> None:
+          training: dict[str, Any] | None = None, evaluation: dict[str, Any] | None = None,
+          env_steps: int | None = None) -> None:
+    """`env_steps`: how many env steps the policy trained on (a loaded model's `num_timesteps`)."""
     from silcr.version import __version__
 
     payload = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "silcr": __version__, "algo": algo, "config": config,
                "policy": policy_dict(weights), "spec": spec_dict(spec)}
+    if env_steps is not None:
+        payload["env_steps"] = int(env_steps)
     if training is not None:
         payload["training"] = training
     if evaluation is not None:

@@ -14,7 +14,6 @@ Both are the command line's own launchers, driven from Python:
 
 from __future__ import annotations
 
-import _thread
 import contextlib
 import io
 import logging
@@ -133,56 +132,58 @@ class InProcessTraining:
 
 
 class DistributedTraining:
+    """One `learn` of an `actors=N` model: `silcr train`'s launcher, its rows and its stop included. After `learn`
+    returns or raises (Ctrl-C, a callback's exception), `weights` and `env_steps` hold what the run's last
+    learner checkpoint holds, so the model keeps what was trained and a next `learn` resumes from it."""
+
     def __init__(self, cfg: Config) -> None:
         self.cfg = cfg
+        self.weights: P.Weights | None = None
+        self.env_steps = 0
 
-    def learn(self, on_row: RowCallback | None, progress_bar: bool) -> tuple[P.Weights, int]:
-        """Run `silcr train`'s path to `cfg.total_steps`; the learner's final weights and env steps. A callback's False stops
-        the run through the launcher's Ctrl-C path (every component stops cleanly); a real Ctrl-C raises
-        KeyboardInterrupt once they have."""
+    def learn(self, on_row: RowCallback | None, progress_bar: bool) -> None:
+        """Run `silcr train`'s path to `cfg.total_steps`. A callback's False stops the run cleanly (every component
+        stops and checkpoints); its exception does too, and is raised; a real Ctrl-C raises KeyboardInterrupt
+        once they have stopped."""
         from silcr.common.run_lock import RunInUse
         from silcr.deploy.launch import train
-        from silcr.learner.checkpoint import load_checkpoint
-        from silcr.learner.evaluate import weights_from_checkpoint
 
-        from silcr.learner.progress import read_rows
+        stopped = False
 
-        stopped, done = threading.Event(), threading.Event()
+        def told(row: dict[str, Any]) -> bool:
+            nonlocal stopped
+            stopped = on_row(row) is False
+            return not stopped
 
-        def follow() -> None:
-            seen = len(read_rows(self.cfg.run_dir))
-            while not done.wait(0.5):
-                rows = read_rows(self.cfg.run_dir)
-                for row in rows[seen:]:
-                    if on_row(row) is False and not stopped.is_set():
-                        stopped.set()
-                        _thread.interrupt_main()
-                seen = len(rows)
-
-        watcher = threading.Thread(target=follow, daemon=True) if on_row is not None else None
-        if watcher is not None:
-            watcher.start()
         quiet = contextlib.nullcontext() if progress_bar else contextlib.redirect_stdout(io.StringIO())
         try:
             with quiet:
-                code = train(self.cfg)
+                code = train(self.cfg, told if on_row is not None else None, who="silcr")
         except (RunInUse, ConfigError) as e:
             raise RuntimeError(str(e)) from None
-        except KeyboardInterrupt:  # the callback's stop came before the launcher took Ctrl-C over
+        except KeyboardInterrupt:  # Ctrl-C before the launcher took it over
             code = 130
         finally:
-            done.set()
-            if watcher is not None:
-                watcher.join()
-        if code == 130 and not stopped.is_set():
+            self._take_checkpoint()
+        if code == 130 and not stopped:
             raise KeyboardInterrupt
         if code == EXIT_STALE_CHECKPOINT:
             raise OSError(f"the run ended but its final checkpoints could not be written (exit code {code}); the "
                           f"checkpoints in {run_layout.checkpoints(self.cfg.run_dir)} are stale (logs: {run_layout.logs(self.cfg.run_dir)})")
         if code not in (0, 130):
             raise RuntimeError(f"the distributed run ended with exit code {code}; the components' logs are in "
-                               f"{run_layout.logs(self.cfg.run_dir)}")
-        final = load_checkpoint(run_layout.learner_checkpoint(self.cfg.run_dir))
-        return weights_from_checkpoint(final)[0], int(final["counters"]["env_steps"])
+                               f"{run_layout.logs(self.cfg.run_dir)} (the line above names the one that failed)")
 
+    def _take_checkpoint(self) -> None:
+        """What the run's learner checkpoint holds now: the weights and env steps the model keeps."""
+        from silcr.learner.checkpoint import CheckpointError, load_checkpoint
+        from silcr.learner.evaluate import weights_from_checkpoint
 
+        path = run_layout.learner_checkpoint(self.cfg.run_dir)
+        if not path.exists():
+            return
+        try:
+            final = load_checkpoint(path)
+        except CheckpointError:
+            return
+        self.weights, self.env_steps = weights_from_checkpoint(final)[0], int(final["counters"]["env_steps"])

@@ -35,6 +35,20 @@ def test_actors_pause_above_window_and_resume_at_centre():
     assert not lim.inserts_paused()  # back at the centre
 
 
+def test_a_budget_spent_during_the_warm_up_pauses_the_actors_at_the_budget():
+    """A run shorter than --learning-starts (learn(4000) at the default 10,240): the actors ran unthrottled until
+    the learner joined, to 11,441 env steps. No update can need more than the budget."""
+    lim = SamplesPerInsertLimiter(1.0, min_size_to_sample=10_240, tolerance=2000, final_inserts=4000)
+    lim.record_insert(3999)
+    assert lim.warming_up() and not lim.inserts_paused()
+    lim.record_insert(1)
+    assert lim.inserts_paused()
+    # without a budget, the warm-up never pauses (the learner is what the window waits for)
+    free = SamplesPerInsertLimiter(1.0, min_size_to_sample=10_240, tolerance=2000)
+    free.record_insert(10_240)
+    assert not free.inserts_paused()
+
+
 def test_no_throttle_never_pauses():
     lim = SamplesPerInsertLimiter(1.0, min_size_to_sample=0, tolerance=1, throttle_inserts=False)
     lim.record_insert(10**6)
