@@ -48,6 +48,7 @@ class Bookkeeping:
         self.updates = 0
         self.policy_version = 0
         self.env_steps = 0
+        self.wall_before = 0.0  # seconds the run ran before this start (to its checkpoint)
         self.checkpoints = LearnerCheckpoints(cfg.run_dir, cfg.resume)
         self.resumed = self.checkpoints.resumed
         payload = self.checkpoints.load()
@@ -69,13 +70,20 @@ class Bookkeeping:
         self.buffer_meta: dict[str, Any] = {}  # the latest reply's description of the buffer (D_E's returns)
 
     # -- counters and checkpoints ------------------------------------------------------
+    def wall_time(self) -> float:
+        """Seconds the run has run, every stretch added (progress.csv's `time` starts again at each start)."""
+        return self.wall_before + self.clock.elapsed()
+
     def state(self) -> dict[str, Any]:
         """The checkpoint's counters: this object's and its parts', in one map."""
-        return {name: getattr(self, name) for name in self.COUNTERS} | self.evaluations.state() | self.checkpoints.state()
+        return ({name: getattr(self, name) for name in self.COUNTERS} | {"wall_time": self.wall_time()}
+                | self.evaluations.state() | self.checkpoints.state())
 
     def restore(self, counters: dict[str, Any]) -> None:
         for name in self.COUNTERS:
             setattr(self, name, counters[name])
+        # absent from checkpoints before silcr 0.6: the stretches before it are not counted
+        self.wall_before = float(counters.get("wall_time", 0.0))
         self.evaluations.restore(counters)
         self.checkpoints.restore(counters)
 
@@ -187,6 +195,7 @@ class Bookkeeping:
         """Evaluate the policy (deterministic unless --eval-stochastic) and write a progress row."""
         self.evaluations.run(self.weights(), {
             "time": round(self.clock.elapsed(), 3),
+            "wall_time": round(self.wall_time(), 3),
             "env_steps": self.env_steps,
             "updates": self.updates,
             "policy_version": self.policy_version,

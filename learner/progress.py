@@ -44,6 +44,7 @@ PROGRESS_COLUMNS = [
     # eval_return over D_E's lowest return, once D_E has filled (`evaluations.keep_ratio`; silcr 0.6)
     "keep_ratio",
     "bc_loss",  # the last update's behaviour-cloning loss on D_E rows (--bc-weight above 0)
+    "wall_time",  # seconds since the run first started, every resumed stretch added (`time` restarts; silcr 0.6)
 ]
 
 

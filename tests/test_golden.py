@@ -35,7 +35,7 @@ from silcr.cli import command
 from tests.helpers import REPO
 
 GOLDEN = REPO / "tests" / "golden"
-WALL_CLOCK_COLUMNS = {"time", "updates_per_s"}
+WALL_CLOCK_COLUMNS = {"time", "updates_per_s", "wall_time"}
 ENV = "InvertedPendulum-v5"
 # Small, but every part runs: two actors with two envs each, D_E full and turning over,
 # several weights versions, evaluations and checkpoints.

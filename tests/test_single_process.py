@@ -16,7 +16,7 @@ import time
 from silcr.learner.checkpoint import load_checkpoint
 from tests.helpers import REPO, Processes, wait_for
 
-WALL_CLOCK_COLUMNS = {"time", "updates_per_s"}
+WALL_CLOCK_COLUMNS = {"time", "updates_per_s", "wall_time"}
 SMALL = ["--env", "InvertedPendulum-v5", "--hidden", "32", "32", "--learning-starts", "500", "--eval-interval", "1000",
          "--eval-episodes", "2", "--actors", "2", "--envs-per-actor", "2", "--weights-interval", "20",
          "--checkpoint-interval", "1000", "--torch-threads", "1"]  # pinned: the default chooses by timing
