@@ -12,6 +12,7 @@ steps, publish stats.
 from __future__ import annotations
 
 import logging
+import socket
 import time
 
 import numpy as np
@@ -27,6 +28,8 @@ from silcr.common.role_session import role_session
 from .policy import Policy, initial_weights, usable_policy
 
 log = logging.getLogger("actor")
+#: The machine an actor runs on, in its stats (which node of a cluster, which host of several).
+HOST = socket.gethostname()
 # A paused actor wakes this often (unless the buffer lets it go on first) to take newer weights
 # and publish its stats.
 PAUSED_POLL_S = 0.25
@@ -105,7 +108,7 @@ class Actor:
         return True
 
     def stats(self) -> dict:
-        return {"actor_id": self.actor_id, "episodes": self.episodes, "steps": self.steps,
+        return {"actor_id": self.actor_id, "host": HOST, "episodes": self.episodes, "steps": self.steps,
                 "last_episode_return": self.last_return} | self.writer.stats() | self.weights.stats()
 
     def close(self) -> None:
@@ -148,6 +151,9 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
             if role.stats_due.due():
                 role.stats.put({"time": time.time(), "paused": paused, "paused_s": paused_s,
                                 "waiting_for_buffer": waiting} | actor.stats())
-        log.info("actor %d stopping (%s): %d episodes, %d steps", cfg.actor_id, stop.reason, actor.episodes, actor.steps)
+        written = writer.stats()
+        log.info("actor %d on %s stopping (%s): %d episodes, %d steps; %d episodes written to the buffer, %d not",
+                 cfg.actor_id, HOST, stop.reason, actor.episodes, actor.steps, written["episodes_written"],
+                 written["episodes_unwritten"])
     actor.close()
     return 0

@@ -158,7 +158,7 @@ class DistributedTraining:
         quiet = contextlib.nullcontext() if progress_bar else contextlib.redirect_stdout(io.StringIO())
         try:
             with quiet:
-                code = train(self.cfg, told if on_row is not None else None, who="silcr")
+                code = train(self.cfg, told if on_row is not None else None, who="silcr learn")
         except (RunInUse, ConfigError) as e:
             raise RuntimeError(str(e)) from None
         except KeyboardInterrupt:  # Ctrl-C before the launcher took it over
