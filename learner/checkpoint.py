@@ -46,7 +46,7 @@ def load_plain(path: Path, error: type[Exception], what: str) -> Any:
                     f"loaded; refused ({named[0]})") from None
     except Exception as e:  # torch raises several types for truncated or foreign files
         if not _looks_like_torch(path):  # torch's own error for these says nothing useful ("KeyError: 101")
-            raise error(f"{what} {path} is not a file silcr wrote (not torch data)") from None
+            raise error(f"{what} {path} is unreadable or corrupt (not a torch file)") from None
         raise error(f"{what} {path} is unreadable or corrupt ({type(e).__name__}: {e})") from None
 
 

@@ -8,11 +8,11 @@ from __future__ import annotations
 import csv
 import json
 import os
+import re
 import signal
 import subprocess
 import sys
 import textwrap
-import time
 
 import pytest
 
@@ -138,3 +138,30 @@ def test_a_script_read_from_standard_input_trains_with_actors(tmp_path):
     assert json.loads(r.stdout.strip().splitlines()[-1])["steps"] >= 1200
     logs = "".join(p.read_text() for p in (tmp_path / "stdin" / "logs").glob("*.log"))
     assert "the script ran" not in logs and "Traceback" not in logs
+
+
+def test_the_smaller_things_a_new_user_saw(tmp_path):
+    """Issue 60, item 6: a model's observation space is the env's own; a loaded model reports the env steps it
+    trained; a file that is not a model says so; `silcr plot` takes a run's progress.csv; the API names runs as the
+    command line does."""
+    import gymnasium as gym
+
+    from silcr import SILCR
+    from silcr.model_file import ModelFileError
+
+    model = SILCR("MountainCarContinuous-v0", runs_dir=tmp_path, hidden=(8, 8), learning_starts=100,
+                  expert_capacity=1000, eval_interval=300, eval_episodes=1, torch_threads=1)
+    space = gym.make("MountainCarContinuous-v0").observation_space
+    assert model.observation_space == space  # Box([-1.2, -0.07], [0.6, 0.07]), not (-inf, inf)
+    assert re.fullmatch(r"MountainCarContinuous-v0-silcr-\d{8}-\d{6}-[0-9a-f]{4}", model.run_dir.name)
+    model.learn(400)
+    model.save(tmp_path / "m.silcr")
+    model.close()
+    assert SILCR.load(tmp_path / "m.silcr").num_timesteps == model.num_timesteps >= 400
+    (tmp_path / "junk.silcr").write_text("not a model")
+    with pytest.raises(ModelFileError, match=r"is unreadable or corrupt \(not a torch file\)$"):
+        SILCR.load(tmp_path / "junk.silcr")
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", "plot", str(model.run_dir / "progress.csv"), "-o",
+                        str(tmp_path / "c.png")], capture_output=True, text=True, cwd=REPO, timeout=120)
+    assert r.returncode == 0 and "Traceback" not in r.stderr, r.stderr
+    assert "for the run (" in r.stdout  # not "for the 1 runs together"
