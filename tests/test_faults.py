@@ -106,8 +106,9 @@ def test_a_component_that_cannot_start_is_not_restarted_and_nothing_is_rewritten
             (ckpt / n).write_bytes(data)
         spoil(ckpt / name)
         spoiled = (ckpt / name).read_bytes()
-        r = subprocess.run(command(*args, "--resume", "--zenoh-listen", f"tcp/127.0.0.1:{free_port()}"),
-                           capture_output=True, text=True, timeout=300, cwd=REPO)
+        # a larger budget, so that the checkpoints are needed (the finished run itself would start nothing at all)
+        r = subprocess.run(command(*args, "--resume", "--total-steps", "3000", "--zenoh-listen",
+                                   f"tcp/127.0.0.1:{free_port()}"), capture_output=True, text=True, timeout=300, cwd=REPO)
         assert r.returncode == 2, f"{case}: {r.returncode} {r.stderr}"
         errors = [line for line in r.stderr.splitlines() if "error" in line]
         assert len(errors) == 1 and needle in errors[0] and "Traceback" not in r.stderr, f"{case}: {r.stderr}"
@@ -128,7 +129,8 @@ def test_a_single_process_run_refuses_a_corrupt_learner_checkpoint_with_one_line
     learner_pt = runs / "one" / "checkpoints" / "learner.pt"
     learner_pt.write_bytes(bytes(learner_pt.stat().st_size))
     buffer_ckpt = (runs / "one" / "checkpoints" / "buffer.ckpt").read_bytes()
-    r = subprocess.run(command(*args, "--resume"), capture_output=True, text=True, timeout=300, cwd=REPO)
+    r = subprocess.run(command(*args, "--resume", "--total-steps", "1600"), capture_output=True, text=True, timeout=300,
+                       cwd=REPO)  # a larger budget: the finished run itself would read no checkpoint
     errors = [line for line in r.stderr.splitlines() if "error" in line]
     assert r.returncode == 2 and len(errors) == 1 and "cannot resume" in errors[0], r.stderr
     assert "Traceback" not in r.stderr
