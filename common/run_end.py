@@ -20,12 +20,15 @@ run, and an exit code is what they read (docs/deployment.md, "When a run ends").
 from __future__ import annotations
 
 import json
+import logging
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from silcr.common import run_layout
 from silcr.common.atomic_file import write_atomic
 from silcr.common.config import Config
+
+log = logging.getLogger("run_end")
 
 
 @dataclass(frozen=True)
@@ -43,8 +46,12 @@ class Finished:
 
 
 def mark(run_dir: Path, finished: Finished) -> None:
-    """Record that the run finished (atomically: a reader sees the whole file or none)."""
-    write_atomic(run_layout.finished(run_dir), lambda f: f.write(json.dumps(asdict(finished)).encode()))
+    """Record that the run finished (atomically: a reader sees the whole file or none). A failed write (a full
+    disk) is logged: a later --resume finds the budget spent from the learner checkpoint's counters instead."""
+    try:
+        write_atomic(run_layout.finished(run_dir), lambda f: f.write(json.dumps(asdict(finished)).encode()))
+    except OSError as e:
+        log.error("could not record that run %s finished in %s (%s)", finished.run, run_layout.finished(run_dir), e)
 
 
 def unmark(run_dir: Path) -> None:

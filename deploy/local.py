@@ -1,8 +1,8 @@
 """`silcr train`: the whole system on one machine, one process per component.
 
 Starts a Zenoh router, the buffer service, the learner and N actors, each as a new
-Python process running this module (`python -m silcr.deploy.local`, given its role and
-its configuration on standard input): never a fork (a forked child of a process with a
+Python process running this module's `child_main` (given its role, and its configuration
+on standard input): never a fork (a forked child of a process with a
 Zenoh session hangs or talks to nobody), and never a re-import of the caller's script
 (multiprocessing's `spawn` runs the `__main__` of a Python API user's script again in
 every child, and cannot at all for a script read from standard input). It shows a
@@ -44,7 +44,7 @@ STOP_GRACE_S = 20.0
 
 
 def component_main(role: str, cfg_dict: dict[str, Any], log_path: str) -> None:
-    """What every child process runs (`python -m silcr.deploy.local`, at the end of this file)."""
+    """What every child process runs (`child_main`, at the end of this file)."""
     fd = os.open(log_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND, 0o644)
     os.dup2(fd, 1)
     os.dup2(fd, 2)
@@ -111,7 +111,9 @@ class Component:
     def __init__(self, role: str, cfg: Config, log_path: Path) -> None:
         # The child reads its configuration from standard input (as JSON: exactly these values, not the
         # environment's SILCR_* again) before it sends its output to the log.
-        self._popen = subprocess.Popen([sys.executable, "-m", "silcr.deploy.local", role, str(log_path)],
+        # Not `python -m`: that puts the working directory first on sys.path (common/commands.py says why not).
+        entry = "import sys; sys.path.pop(0); from silcr.deploy.local import child_main; child_main()"
+        self._popen = subprocess.Popen([sys.executable, "-c", entry, role, str(log_path)],
                                        stdin=subprocess.PIPE, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         assert self._popen.stdin is not None
         try:
@@ -156,11 +158,15 @@ class LocalRun:
     def start(self, role: str, cfg: Config, name: str) -> None:
         self.specs[name] = (role, cfg)
         self.procs[name] = Component(role, cfg, self.log(name))
-        # For operators and tests: which PID is which component.
+        # For operators and tests: which PID is which component. A full disk must not end the run here.
         pids = {n: proc.pid for n, proc in self.procs.items()} | {"train": os.getpid()}
         tmp = self.cfg.run_dir / ".pids.json.tmp"
-        tmp.write_text(json.dumps(pids))
-        tmp.replace(run_layout.pids(self.cfg.run_dir))
+        try:
+            tmp.write_text(json.dumps(pids))
+            tmp.replace(run_layout.pids(self.cfg.run_dir))
+        except OSError as e:
+            tmp.unlink(missing_ok=True)
+            log.warning("%s could not be written (%s); the run goes on", run_layout.pids(self.cfg.run_dir), e)
 
     def stop_all(self, order: list[str]) -> None:
         for name in order:
@@ -365,5 +371,6 @@ def _watch(run: LocalRun, cfg: Config, stats: StatsSnapshot, who: str, rows: Row
             time.sleep(0.25)
 
 
-if __name__ == "__main__":  # a child of `LocalRun`: python -m silcr.deploy.local ROLE LOG_PATH < config.json
+def child_main() -> None:
+    """A child of `LocalRun`: `python -c ... ROLE LOG_PATH`, its configuration as JSON on standard input."""
     component_main(sys.argv[1], json.loads(sys.stdin.read()), sys.argv[2])

@@ -45,10 +45,7 @@ class Bookkeeping:
         self.update = update
         self.weights_server = weights
         self.incarnation = P.new_incarnation()
-        self.updates = 0
-        self.policy_version = 0
-        self.env_steps = 0
-        self.wall_before = 0.0  # seconds the run ran before this start (to its checkpoint)
+        self.updates = self.policy_version = self.env_steps = 0  # COUNTERS
         self.checkpoints = LearnerCheckpoints(cfg.run_dir, cfg.resume)
         self.resumed = self.checkpoints.resumed
         payload = self.checkpoints.load()
@@ -58,6 +55,7 @@ class Bookkeeping:
             except (ValueError, KeyError, RuntimeError) as e:  # other networks, another --algo, missing tensors
                 raise CheckpointError(f"{self.checkpoints.path} does not fit this run: {e}") from None
         self.evaluations = Evaluations(cfg, spec, cfg.run_dir, self.resumed)
+        self.clock = UpdateClock()  # before `restore`: it keeps the run's time before this start
         if payload is not None:
             self.restore(payload["counters"])
             log.info("resumed from %s: %d updates, policy version %d", self.checkpoints.path, self.updates,
@@ -66,24 +64,18 @@ class Bookkeeping:
             log.info("--resume: no checkpoint at %s yet; starting fresh", self.checkpoints.path)
         self.ages = RowAges()
         self.next_checkpoint = (self.updates // cfg.checkpoint_interval + 1) * cfg.checkpoint_interval
-        self.clock = UpdateClock()
         self.buffer_meta: dict[str, Any] = {}  # the latest reply's description of the buffer (D_E's returns)
 
     # -- counters and checkpoints ------------------------------------------------------
-    def wall_time(self) -> float:
-        """Seconds the run has run, every stretch added (progress.csv's `time` starts again at each start)."""
-        return self.wall_before + self.clock.elapsed()
-
     def state(self) -> dict[str, Any]:
         """The checkpoint's counters: this object's and its parts', in one map."""
-        return ({name: getattr(self, name) for name in self.COUNTERS} | {"wall_time": self.wall_time()}
+        return ({name: getattr(self, name) for name in self.COUNTERS} | {"wall_time": self.clock.wall_time()}
                 | self.evaluations.state() | self.checkpoints.state())
 
     def restore(self, counters: dict[str, Any]) -> None:
         for name in self.COUNTERS:
             setattr(self, name, counters[name])
-        # absent from checkpoints before silcr 0.6: the stretches before it are not counted
-        self.wall_before = float(counters.get("wall_time", 0.0))
+        self.clock.wall_before = float(counters.get("wall_time", 0.0))  # absent before silcr 0.6
         self.evaluations.restore(counters)
         self.checkpoints.restore(counters)
 
@@ -151,12 +143,9 @@ class Bookkeeping:
             self.evaluate()
             self.evaluations.scheduled(self.env_steps)
 
-    def target_updates(self) -> int:
-        return run_end.target_updates(self.cfg)
-
     def done(self, starved: bool) -> bool:
         """The budget is spent: every step collected and trained on, or nothing more to be had (`starved`)."""
-        return self.env_steps >= self.cfg.total_steps and (self.updates >= self.target_updates() or starved)
+        return self.env_steps >= self.cfg.total_steps and (self.updates >= run_end.target_updates(self.cfg) or starved)
 
     def finish(self, finished: bool) -> bool:
         """`settle`, then close the records; whether the final checkpoint was written."""
@@ -182,12 +171,8 @@ class Bookkeeping:
                       "from the last one that was", self.checkpoints.failed)
             return False
         if finished:  # the finished-run rule: from now on a start with this budget changes nothing (run_end.py)
-            try:
-                run_end.mark(self.cfg.run_dir, run_end.Finished(self.cfg.run, self.env_steps, self.updates,
-                                                                self.cfg.total_steps))
-            except OSError as e:
-                log.error("could not record that the run finished (%s); a --resume would find the budget spent "
-                          "from the checkpoint's counters", e)
+            run_end.mark(self.cfg.run_dir, run_end.Finished(self.cfg.run, self.env_steps, self.updates,
+                                                            self.cfg.total_steps))
         return True
 
     # -- records ---------------------------------------------------------------------
@@ -195,7 +180,7 @@ class Bookkeeping:
         """Evaluate the policy (deterministic unless --eval-stochastic) and write a progress row."""
         self.evaluations.run(self.weights(), {
             "time": round(self.clock.elapsed(), 3),
-            "wall_time": round(self.wall_time(), 3),
+            "wall_time": round(self.clock.wall_time(), 3),
             "env_steps": self.env_steps,
             "updates": self.updates,
             "policy_version": self.policy_version,
@@ -216,6 +201,7 @@ class Bookkeeping:
             "last_eval_return": self.evaluations.last_eval_return,
             **self.clock.rates(self.updates),
             "checkpoints_failed": self.checkpoints.failed,
+            **self.evaluations.progress.stats(),
             **self.ages.stats(),
             "device": str(self.update.device),
             "torch_threads": self.update.torch_threads,

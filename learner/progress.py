@@ -2,12 +2,21 @@
 
 from __future__ import annotations
 
+import contextlib
 import csv
+import errno
+import io
+import logging
 import math
+import os
+import threading
+import time
 from pathlib import Path
 from typing import Any
 
 from silcr.common import run_layout
+
+log = logging.getLogger("learner")
 
 #: The critics' health at the last update before the row (docs/algorithm.md, "Divergence"):
 #: `q_bound_exceeded` counts every update so far whose largest Q passed the soft-Q bound.
@@ -72,43 +81,155 @@ def typed(row: dict[str, str]) -> dict[str, Any]:
 
 
 class ProgressLog:
-    def __init__(self, run_dir: Path, resume: bool = False) -> None:
-        from torch.utils.tensorboard import SummaryWriter  # imported late: it is slow to import
+    """progress.csv and TensorBoard, written so that a full disk (or a failing one) costs records, never the run.
 
+    Every progress row is written whole or not at all: a write that fails (ENOSPC, EIO) is cut back to the
+    row before it, the row waits (up to `MAX_PENDING_ROWS`, the oldest dropped beyond and counted), and the
+    rows that waited are written, in order, before the next one once there is room again. A TensorBoard
+    writer that fails is closed, its scalars dropped (counted) until it is reopened (a new event file, which
+    TensorBoard reads beside the old ones) `TB_RETRY_S` later. Failures are logged once each time writing
+    stops working and counted in `failed_writes` (the learner's stats: `records_failed`).
+    """
+
+    MAX_PENDING_ROWS = 10_000
+    TB_RETRY_S = 30.0
+
+    def __init__(self, run_dir: Path, resume: bool = False) -> None:
         run_dir.mkdir(parents=True, exist_ok=True)
         self.csv_path = run_layout.progress(run_dir)
+        self.tb_dir = run_layout.tensorboard(run_dir)
         new = not (resume and self.csv_path.exists())
         if not new:
             _upgrade_header(self.csv_path)
-        self._file = open(self.csv_path, "w" if new else "a", newline="")
-        self._csv = csv.DictWriter(self._file, fieldnames=PROGRESS_COLUMNS, extrasaction="ignore")
-        if new:
-            self._csv.writeheader()
-            self._file.flush()
-        self.tb = SummaryWriter(log_dir=str(run_layout.tensorboard(run_dir)))
+        self._fd = os.open(self.csv_path, os.O_WRONLY | os.O_CREAT | os.O_APPEND | (os.O_TRUNC if new else 0), 0o644)
+        self._pending: list[bytes] = [_line(dict(zip(PROGRESS_COLUMNS, PROGRESS_COLUMNS)))] if new else []
+        self.failed_writes = 0  # rows and scalars that could not be written when first tried
+        self.rows_dropped = 0  # rows given up (more than MAX_PENDING_ROWS waiting)
+        self.scalars_dropped = 0
+        self._failing = False
+        self._tb = None
+        self._tb_retry_at = 0.0
+        quiet_disk_errors_in_threads()
+        self._flush_rows()
+        self._open_tb()
 
     def row(self, values: dict[str, Any]) -> dict[str, Any]:
-        """Write one row; the row as written (a column of none, NaN or infinity is empty, ""), by column."""
+        """Write one row (or keep it until there is room); the row as written (a column of none, NaN or infinity
+        is empty, ""), by column."""
         clean = {k: ("" if v is None or isinstance(v, float) and not math.isfinite(v) else v)
                  for k, v in values.items() if k in PROGRESS_COLUMNS}
         clean = {k: clean.get(k, "") for k in PROGRESS_COLUMNS}
-        self._csv.writerow(clean)
-        self._file.flush()
+        self._pending.append(_line(clean))
+        if len(self._pending) > self.MAX_PENDING_ROWS:
+            self._pending.pop(1 if self._pending[0].startswith(b"time,") else 0)
+            self.rows_dropped += 1
+        self._flush_rows()
         step = int(values["env_steps"])
-        for k in ("eval_return", "eval_return_std", "eval_length", "eval_success", "eval_x_velocity"):
-            if k in values and isinstance(values[k], (int, float)):
-                self.tb.add_scalar(f"eval/{k.removeprefix('eval_')}", values[k], step)
+        scalars = {f"eval/{k.removeprefix('eval_')}": values[k] for k in
+                   ("eval_return", "eval_return_std", "eval_length", "eval_success", "eval_x_velocity")
+                   if k in values and isinstance(values[k], (int, float))}
         if isinstance(values.get("keep_ratio"), (int, float)):
-            self.tb.add_scalar("eval/keep_ratio", values["keep_ratio"], step)
+            scalars["eval/keep_ratio"] = values["keep_ratio"]
+        self.scalars(scalars, step)
         return clean
 
     def scalars(self, values: dict[str, float], step: int) -> None:
-        for k, v in values.items():
-            self.tb.add_scalar(k, v, step)
+        if not values:
+            return
+        if self._tb is None and not self._open_tb():
+            self.scalars_dropped += len(values)
+            return
+        try:
+            for k, v in values.items():
+                self._tb.add_scalar(k, v, step)
+        except OSError as e:  # the writer's thread failed (a full disk): it is broken for good
+            self._failed("TensorBoard events", e)
+            self.scalars_dropped += len(values)
+            self._close_tb()
+            self._tb_retry_at = time.monotonic() + self.TB_RETRY_S
+
+    def stats(self) -> dict[str, int]:
+        return {"records_failed": self.failed_writes, "records_waiting": len(self._pending),
+                "records_dropped": self.rows_dropped + self.scalars_dropped}
 
     def close(self) -> None:
-        self._file.close()
-        self.tb.close()
+        self._flush_rows()
+        if self._pending:
+            log.error("%d progress.csv row(s) could not be written before the end (%s)", len(self._pending),
+                      self.csv_path)
+        os.close(self._fd)
+        self._close_tb()
+
+    # -- writing -----------------------------------------------------------------------------------------
+    def _flush_rows(self) -> None:
+        while self._pending:
+            line = self._pending[0]
+            try:
+                end = os.fstat(self._fd).st_size
+                written = os.write(self._fd, line)
+                if written != len(line):
+                    raise OSError(errno.ENOSPC, f"wrote {written} of {len(line)} bytes")
+            except OSError as e:
+                with contextlib.suppress(OSError):
+                    os.ftruncate(self._fd, end)  # no half row: the file ends at the last whole one
+                self._failed("progress.csv", e)
+                return
+            self._pending.pop(0)
+            if self._failing:
+                self._failing = False
+                log.warning("progress.csv is written again (%d write(s) failed meanwhile)", self.failed_writes)
+
+    def _failed(self, what: str, e: OSError) -> None:
+        self.failed_writes += 1
+        if not self._failing:
+            self._failing = True
+            log.error("%s could not be written (%s); training goes on, the rows wait and are written when there "
+                      "is room, and failures are counted (records_failed)", what, e.strerror or e)
+
+    def _open_tb(self) -> bool:
+        if time.monotonic() < self._tb_retry_at:
+            return False
+        from torch.utils.tensorboard import SummaryWriter  # imported late: it is slow to import
+
+        try:
+            self._tb = SummaryWriter(log_dir=str(self.tb_dir))
+        except OSError as e:
+            self._failed("TensorBoard events", e)
+            self._tb_retry_at = time.monotonic() + self.TB_RETRY_S
+            return False
+        return True
+
+    def _close_tb(self) -> None:
+        if self._tb is not None:
+            with contextlib.suppress(Exception):  # a writer whose thread failed raises its error again here
+                self._tb.close()
+            self._tb = None
+
+
+def _line(values: dict[str, Any]) -> bytes:
+    out = io.StringIO()
+    csv.DictWriter(out, fieldnames=PROGRESS_COLUMNS, extrasaction="ignore").writerow(values)
+    return out.getvalue().encode()
+
+
+def quiet_disk_errors_in_threads() -> None:
+    """A writer thread that dies of a full or failing disk (TensorBoard's) logs one line, not a traceback: the
+    failure is handled where it surfaces (`ProgressLog`)."""
+    if getattr(threading.excepthook, "_silcr_quiet_disk", False):
+        return
+    previous = threading.excepthook
+
+    def hook(args: threading.ExceptHookArgs) -> None:
+        if isinstance(args.exc_value, OSError) and args.exc_value.errno in _DISK_ERRNOS:
+            log.warning("thread %s: %s", args.thread.name if args.thread else "?", args.exc_value)
+            return
+        previous(args)
+
+    hook._silcr_quiet_disk = True  # type: ignore[attr-defined]
+    threading.excepthook = hook
+
+
+_DISK_ERRNOS = {errno.ENOSPC, errno.EIO, errno.EDQUOT, errno.EROFS}
 
 
 def _upgrade_header(path: Path) -> None:

@@ -15,6 +15,7 @@ log = logging.getLogger("learner")
 class UpdateClock:
     def __init__(self) -> None:
         self.started = time.monotonic()
+        self.wall_before = 0.0
         self.update_time = 0.0
         self.first_update_at: float | None = None
         self.last_update_at = 0.0
@@ -22,6 +23,10 @@ class UpdateClock:
 
     def elapsed(self) -> float:
         return time.monotonic() - self.started
+
+    def wall_time(self) -> float:
+        """Seconds the run has run, every stretch added (`wall_before`: to the checkpoint this start resumed)."""
+        return self.wall_before + self.elapsed()
 
     def counted(self, n: int, seconds: float) -> None:
         """`n` updates just took `seconds`."""

@@ -168,22 +168,15 @@ class Model:
         same D_O, D_E and counters, as `silcr train --resume` does). `callback` is called after each
         evaluation; returning False stops training cleanly. Ctrl-C stops it too (checkpoints written)
         and raises KeyboardInterrupt; no process is left behind either way."""
-        if isinstance(total_steps, bool) or not isinstance(total_steps, (int, np.integer)) or total_steps < 1:
-            raise ValueError(f"total_steps: an integer >= 1, got {total_steps!r}")
-        if not self._trainable:
-            raise ValueError("this model was loaded for predict only: load it with include_training_state=True to "
-                             "train it further")
+        _check_learn(total_steps, self._trainable)
         on_row = _as_callback(callback, self)
         self.cfg.total_steps = self.num_timesteps + int(total_steps)
         if self.actors == 0:
             if self._session is None:
                 self._session = InProcessTraining(self.cfg)
             self._session.learn(on_row, progress_bar)
-        else:
-            self.cfg.resume = self._steps > 0 or self.cfg.resume  # a second learn goes on from the checkpoints
-            if self._pick_port:  # two models training at once must not meet on one port
-                self.cfg.zenoh_listen = f"tcp/127.0.0.1:{_free_port()}"
-            run = DistributedTraining(self.cfg)
+        else:  # a second learn goes on from the checkpoints; a free port unless the user named one
+            run = DistributedTraining(self.cfg, resume=self._steps > 0, free_port=self._pick_port)
             try:
                 run.learn(on_row, progress_bar)
             finally:  # also after Ctrl-C or a callback's exception: the model keeps what its checkpoint holds
@@ -286,12 +279,12 @@ class Model:
         return f"{type(self).__name__}({self.env_id!r}, actors={self.actors}, run_dir={str(self.run_dir)!r})"
 
 
-def _free_port() -> int:
-    import socket
-
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
+def _check_learn(total_steps: Any, trainable: bool) -> None:
+    if isinstance(total_steps, bool) or not isinstance(total_steps, (int, np.integer)) or total_steps < 1:
+        raise ValueError(f"total_steps: an integer >= 1, got {total_steps!r}")
+    if not trainable:
+        raise ValueError("this model was loaded for predict only: load it with include_training_state=True to "
+                         "train it further")
 
 
 def _env_like(env: Any, actors: int, saved: Any) -> tuple[str, Any]:

@@ -136,8 +136,17 @@ class DistributedTraining:
     returns or raises (Ctrl-C, a callback's exception), `weights` and `env_steps` hold what the run's last
     learner checkpoint holds, so the model keeps what was trained and a next `learn` resumes from it."""
 
-    def __init__(self, cfg: Config) -> None:
+    def __init__(self, cfg: Config, resume: bool = False, free_port: bool = False) -> None:
+        """`resume`: go on from the run's checkpoints (a model's second `learn`); `free_port`: the router on a free
+        port of this machine (two models training at once must not meet on one port)."""
         self.cfg = cfg
+        cfg.resume = resume or cfg.resume
+        if free_port:
+            import socket
+
+            with socket.socket() as s:
+                s.bind(("127.0.0.1", 0))
+                cfg.zenoh_listen = f"tcp/127.0.0.1:{s.getsockname()[1]}"
         self.weights: P.Weights | None = None
         self.env_steps = 0
 
