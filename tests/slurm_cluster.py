@@ -215,6 +215,15 @@ PartitionName=test Nodes={nodes} Default=YES MaxTime=INFINITE State=UP
                 pass
         for log in self._logs:
             log.close()
+        # What a job left behind on a node (a step's processes outlive a killed slurmd): every process in its
+        # network namespace.
+        for name in self.names:
+            pids = subprocess.run(["ip", "netns", "pids", name], capture_output=True, text=True, timeout=30).stdout
+            for pid in pids.split():
+                try:
+                    os.kill(int(pid), 9)
+                except (ProcessLookupError, ValueError):
+                    pass
         for name in [*self.names, self.bridge_ns]:
             subprocess.run(["ip", "netns", "del", name], capture_output=True, timeout=30)
         subprocess.run(["ip", "link", "del", self.ctl_link], capture_output=True, timeout=30)

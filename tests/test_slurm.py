@@ -151,3 +151,26 @@ def test_scancel_mid_run_stops_every_process_and_leaves_usable_checkpoints(clust
     assert snap is not None and snap.transitions > 0
     assert not (run_dir / "finished.json").exists()
     assert "stopping (SIGTERM)" in (run_dir / "logs" / "learner.log").read_text()
+
+
+def test_the_signal_before_the_time_limit_checkpoints_requeues_and_the_run_goes_on_to_finish(cluster, tmp_path):
+    """`--signal=B:USR1@120`, sent here by hand (`scancel --signal=USR1 --batch`), as Slurm sends it two minutes
+    before the time limit: the job stops every component with its checkpoints and requeues itself; the requeued
+    job resumes from them and finishes the run."""
+    shared = tmp_path / "shared"
+    shared.mkdir()
+    port = 29000 + int(cluster.tag, 16) % 1000
+    job = _submit(cluster, shared, "requeued", 6000, port)
+    run_dir = shared / "runs" / "requeued"
+    wait_for(lambda: (run_dir / "checkpoints" / "learner.pt").exists() and (run_dir / "progress.csv").exists() and
+             len((run_dir / "progress.csv").read_text().splitlines()) >= 3, 300, "a learner checkpoint")
+    assert cluster.run("scancel", "--signal=USR1", "--batch", job).returncode == 0
+    fields = wait_for(lambda: (f := cluster.job(job)).get("JobState") == "COMPLETED" and int(f.get("Restarts", "0")) >= 1
+                      and f, 600, "the requeued job to finish the run", interval=1)
+    assert fields["ExitCode"] == "0:0"
+    out = (shared / f"requeued-{job}.out").read_text()
+    assert "the time limit is near: checkpointing, then requeueing the job" in out and "run requeued finished" in out
+    assert "resumed from " in (run_dir / "logs" / "learner.log").read_text()
+    steps = [int(line.split(",")[1]) for line in (run_dir / "progress.csv").read_text().splitlines()[1:]]
+    assert steps == sorted(steps) and steps[-1] >= 6000
+    assert _silcr_processes() == []
