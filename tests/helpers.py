@@ -33,6 +33,22 @@ total_steps = 100000000
 """
 
 
+#: The options of a small run that ends (a few thousand steps of InvertedPendulum-v5, the env and the budget given
+#: elsewhere), for the deployments' tests (compose, Slurm): checkpoints and stats often enough to watch.
+SMALL_FINITE_RUN_TOML = """hidden = [32, 32]
+learning_starts = 500
+expert_capacity = 1000
+batch_size = 64
+eval_interval = 1000
+eval_episodes = 2
+checkpoint_interval = 300
+buffer_checkpoint_interval = 5
+stats_interval = 0.5
+spi_tolerance = 300
+torch_threads = 1
+"""
+
+
 def small_run_config(directory: Path) -> Path:
     """A TOML file of options for a small, endless run, usable by every component (each reads its own options)."""
     path = directory / "small.toml"

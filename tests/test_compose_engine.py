@@ -26,25 +26,13 @@ import pytest
 
 from silcr.common import protocol as P
 from tests import docker_engine as de
-from tests.helpers import REPO, LatestJson, client_when_up, free_port, wait_for
+from tests.helpers import REPO, SMALL_FINITE_RUN_TOML, LatestJson, client_when_up, free_port, wait_for
 
 pytestmark = pytest.mark.slow
 
 RUN = "engine"
 TOTAL_STEPS = 8000
-SMALL_TOML = """# a small run: a few thousand steps of InvertedPendulum-v5
-hidden = [32, 32]
-learning_starts = 500
-expert_capacity = 1000
-batch_size = 64
-eval_interval = 1000
-eval_episodes = 2
-checkpoint_interval = 500
-buffer_checkpoint_interval = 5
-stats_interval = 0.5
-spi_tolerance = 300
-torch_threads = 1
-"""
+SMALL_TOML = SMALL_FINITE_RUN_TOML  # the env comes from the .env, as a user's would
 
 
 @pytest.fixture(scope="module")

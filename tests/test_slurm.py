@@ -24,24 +24,12 @@ import pytest
 
 from silcr.common import protocol as P
 from tests import slurm_cluster
-from tests.helpers import REPO, LatestJson, client_when_up, wait_for
+from tests.helpers import REPO, SMALL_FINITE_RUN_TOML, LatestJson, client_when_up, wait_for
 
 pytestmark = pytest.mark.slow
 
 SBATCH = REPO / "deploy" / "slurm" / "silcr.sbatch"
-SMALL_TOML = """env = "InvertedPendulum-v5"
-hidden = [32, 32]
-learning_starts = 500
-expert_capacity = 1000
-batch_size = 64
-eval_interval = 1000
-eval_episodes = 2
-checkpoint_interval = 300
-buffer_checkpoint_interval = 5
-stats_interval = 0.5
-spi_tolerance = 300
-torch_threads = 1
-"""
+SMALL_TOML = 'env = "InvertedPendulum-v5"\n' + SMALL_FINITE_RUN_TOML
 
 
 @pytest.fixture(scope="module")
