@@ -105,7 +105,7 @@ def sb3_available() -> bool:
 
 def _peer_env() -> dict[str, str]:
     """This process's environment without the thread-pool defaults silcr added (a value the user set stays)."""
-    from silcr.process_env import ENV_BEFORE_DEFAULTS
+    from silcr.common.process_env import ENV_BEFORE_DEFAULTS
 
     env = dict(os.environ)
     for name, value in ENV_BEFORE_DEFAULTS.items():

@@ -44,7 +44,7 @@ def best_evaluation(run_dir: Path) -> dict[str, Any] | None:
     path = run_layout.best_model(run_dir)
     if not path.exists():
         return None
-    from silcr.model_file import ModelFileError, read  # torch: loaded only once a run has ended
+    from silcr.learner.model_file import ModelFileError, read  # torch: loaded only once a run has ended
 
     try:
         evaluation = read(path).get("evaluation")

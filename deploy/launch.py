@@ -23,7 +23,7 @@ def train(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = None, w
     cleanly (exit code 130), an exception stops it cleanly and is raised. `who` starts the lines it prints."""
     check_free(cfg.run_dir)  # first: a live run of the same name is the likelier reason for a busy port
     if cfg.single_process:
-        from silcr.process_env import spin_in_single_process
+        from silcr.common.process_env import spin_in_single_process
 
         spin_in_single_process()  # before torch loads (the finished-run check loads it): it owns the cores
     from silcr.learner.checkpoint import finished_run

@@ -44,7 +44,7 @@ from silcr.common.commands import command, option_args
 from silcr.common.config import FIELDS, ConfigError, from_options
 from silcr.common.lifecycle import caller_signal_handlers, interrupt_on_ctrl_c
 from silcr.learner.progress import read_rows
-from silcr.runs import wall_seconds
+from silcr.common.run_records import wall_seconds
 
 # Set per cell by the sweep itself, so an experiment file may not set them.
 _SWEEP_OWNED = {"run", "runs_dir", "seed", "resume", "zenoh_listen", "config"}

@@ -20,13 +20,13 @@ from pathlib import Path
 
 import numpy as np
 
-from silcr import model_file
+from silcr.learner import model_file
 from silcr.actor.policy import policy_for
 from silcr.common.envs import EnvSpec, make_env
 from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.evaluate import rollout
 from silcr.policy_commands import policy_weights
-from silcr.runs import load_run
+from silcr.common.run_records import load_run
 
 TERMS = ("reward_survive", "reward_forward", "reward_ctrl", "reward_contact")
 HEALTHY_BONUS = 5.0  # Humanoid-v5's healthy_reward, paid for each step the humanoid is up

@@ -23,7 +23,7 @@ from silcr.common import run_layout
 from silcr.common import seeds
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
-from silcr.model_file import write as write_model
+from silcr.learner.model_file import write as write_model
 
 from .evaluate import evaluate
 from .progress import DIVERGENCE_COLUMNS, EXPERT_COLUMNS, GASIL_COLUMNS, ROLLOUT_COLUMNS, ProgressLog

@@ -19,7 +19,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from silcr.process_env import openmp_wait
+from silcr.common.process_env import openmp_wait
 from silcr.common import protocol as P
 from silcr.common.algorithms import LABEL_MAX, algorithm
 from silcr.common.config import Config, critics_of

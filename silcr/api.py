@@ -25,7 +25,7 @@ from typing import Any, Callable, ClassVar
 
 import numpy as np
 
-import silcr.model_file as model_file
+from silcr.learner import model_file
 from silcr.common.algorithms import ALGORITHMS
 from silcr.common.config import FIELDS, Config, ConfigError, absent_values, default_run_name, from_options
 from silcr.training import DistributedTraining, InProcessTraining
@@ -312,15 +312,40 @@ def _checked(values: dict[str, Any]) -> Config:
     return cfg
 
 
-def _model_class(name: str) -> type[Model]:
+def _algorithm_doc(name: str) -> str:
     a = ALGORITHMS[name]
-    doc = (f"{a.summary} ({a.source}).\n\nA silcr model in Stable-Baselines3's shape: "
-           f"{name.upper()}(env, actors=0, seed=0, run=None, device='cpu', **options), then learn, save, load, "
-           f"predict (docs/api.md).")
-    return type(name.upper(), (Model,), {"algo": name, "__doc__": doc, "__module__": __name__})
+    return (f"{a.summary} ({a.source}).\n\nA silcr model in Stable-Baselines3's shape: "
+            f"{name.upper()}(env, actors=0, seed=0, run=None, device='cpu', **options), then learn, save, load, "
+            f"predict (docs/api.md).")
 
 
-#: One class per algorithm of the registry, by class name (`SILCR`, `SAC`, ...).
-MODELS: dict[str, type[Model]] = {name.upper(): _model_class(name) for name in ALGORITHMS}
-globals().update(MODELS)
+# One class per algorithm of the registry, written out so that IDEs and type checkers see them;
+# tests/test_api.py checks that these are exactly the registry's, each with its entry's name.
+class SILCR(Model):
+    __doc__ = _algorithm_doc("silcr")
+    algo = "silcr"
+
+
+class SAC(Model):
+    __doc__ = _algorithm_doc("sac")
+    algo = "sac"
+
+
+class SQIL(Model):
+    __doc__ = _algorithm_doc("sqil")
+    algo = "sqil"
+
+
+class GASIL(Model):
+    __doc__ = _algorithm_doc("gasil")
+    algo = "gasil"
+
+
+class IRCR(Model):
+    __doc__ = _algorithm_doc("ircr")
+    algo = "ircr"
+
+
+#: The classes by name (`SILCR`, `SAC`, ...).
+MODELS: dict[str, type[Model]] = {c.__name__: c for c in (SILCR, SAC, SQIL, GASIL, IRCR)}
 __all__ = ["Model", "Callback", *MODELS]

@@ -59,7 +59,7 @@ def unrecognized(unknown: list[str], sub: argparse.ArgumentParser | None) -> str
 
 def build_parser() -> tuple[argparse.ArgumentParser, dict[str, argparse.ArgumentParser]]:
     parser = _Parser(prog="silcr", description="Distributed SILCR: self-imitation learning with constant reward.")
-    from silcr.version import __version__
+    from silcr.common.version import __version__
 
     parser.add_argument("--version", action="version", version=f"silcr {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", parser_class=_Parser)

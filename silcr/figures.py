@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from silcr.runs import label_key
+from silcr.common.run_records import label_key
 
 
 def group_colours(labels: set[str]) -> dict[str, str]:

@@ -1,6 +1,6 @@
 """Learning curves and summary tables from run directories (`silcr plot`).
 
-Runs are read and grouped by `silcr.runs`: the seeds of one (env, label) are one
+Runs are read and grouped by `silcr.common.run_records`: the seeds of one (env, label) are one
 curve, their values interpolated onto a common grid of environment steps (up to
 the shortest run) and shown as the mean with a +-1 std band. `--metric` plots
 another progress.csv column (`expert_min_return`: D_E's lowest return; `q_max`:
@@ -14,9 +14,9 @@ from pathlib import Path
 
 import numpy as np
 
+from silcr.common.run_records import (RunCurve, check_pooling, distinguish, final_name, final_value, group,
+                                      label_by_variant, label_key, load_run)
 from silcr.figures import group_colours, panels, steps_tick
-from silcr.runs import (RunCurve, check_pooling, distinguish, final_name, final_value, group, label_by_variant,
-                        label_key, load_run)
 
 
 def _on_grid(runs: list[RunCurve], points: int = 100) -> tuple[np.ndarray, np.ndarray]:

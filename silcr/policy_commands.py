@@ -11,7 +11,7 @@ from pathlib import Path
 def policy_weights(path: Path):
     """The actor weights and env id of a learner checkpoint or a model file (`Model.save`, a run's best.silcr).
     Raises `CheckpointError` or `ModelFileError`, each one line naming the file and the problem."""
-    from silcr import model_file
+    from silcr.learner import model_file
     from silcr.learner.checkpoint import CheckpointError, checked_checkpoint, load_plain
     from silcr.learner.evaluate import weights_from_checkpoint
 
@@ -25,7 +25,7 @@ def policy_weights(path: Path):
 def _policy_from_checkpoint(args: argparse.Namespace, parser: argparse.ArgumentParser):
     """The checked `--episodes`, and the actor weights, env id and `EnvSpec` of `args.checkpoint`; exit 2 if
     unusable."""
-    from silcr import model_file
+    from silcr.learner import model_file
     from silcr.common.envs import EnvSpec
     from silcr.learner.checkpoint import CheckpointError
 

@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
+from silcr.common.run_records import (NOT_A_SETTING, RunCurve, applies, base_label, differing_settings, final_name,
+                                      final_value, group, label_key)
 from silcr.figures import group_colours, panels
-from silcr.runs import (NOT_A_SETTING, RunCurve, applies, base_label, differing_settings, final_name, final_value,
-                        group, label_key)
 
 #: Bootstrap replications: enough for stable 95% intervals at a few seeds, and fast.
 REPS = 2000

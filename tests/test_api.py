@@ -14,7 +14,7 @@ import torch
 
 import silcr
 from silcr import SAC, SILCR
-from silcr.model_file import MODEL_VERSION, ModelFileError
+from silcr.learner.model_file import MODEL_VERSION, ModelFileError
 from tests.helpers import free_port
 
 ENV = "InvertedPendulum-v5"
@@ -58,6 +58,23 @@ def test_the_classes_come_from_the_registry():
         assert issubclass(cls, silcr.Model) and cls.algo == name and ALGORITHMS[name].summary in cls.__doc__
     with pytest.raises(AttributeError):
         silcr.NOT_AN_ALGORITHM  # noqa: B018
+
+
+def test_the_classes_are_written_out_where_type_checkers_see_them():
+    """Each registry entry has a class defined in silcr/api.py (a `class` statement, not `type()`), and the
+    package root names every API class under TYPE_CHECKING, so that IDEs resolve `silcr.SILCR`."""
+    import ast
+
+    from silcr.common.algorithms import ALGORITHMS
+
+    api = ast.parse(Path(silcr.api.__file__).read_text())
+    defined = {n.name for n in api.body if isinstance(n, ast.ClassDef)}
+    assert {a.upper() for a in ALGORITHMS} | {"Model", "Callback"} <= defined
+    root = ast.parse(Path(silcr.__file__).read_text())
+    checked = {a.asname or a.name for n in ast.walk(root) if isinstance(n, ast.If) and "TYPE_CHECKING" in ast.unparse(n.test)
+               for i in n.body if isinstance(i, ast.ImportFrom) and i.module == "silcr.api" for a in i.names}
+    assert checked == set(silcr.API_NAMES) == set(silcr.api.__all__) == {a.upper() for a in ALGORITHMS} | {"Model",
+                                                                                                         "Callback"}
 
 
 def test_learn_save_load_predict_gives_the_same_actions(tmp_path):

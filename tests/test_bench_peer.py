@@ -80,7 +80,7 @@ def test_the_peer_runs_without_silcrs_thread_pool_defaults_but_with_the_users(mo
     defaults (and the first is what makes a 2-thread torch slower here), while what the user set stays."""
     import os
 
-    import silcr.process_env as process_env
+    import silcr.common.process_env as process_env
     from silcr.bench.peer import _peer_env
 
     assert os.environ["OMP_WAIT_POLICY"] == "PASSIVE" or process_env.ENV_BEFORE_DEFAULTS["OMP_WAIT_POLICY"] is not None

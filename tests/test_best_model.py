@@ -12,7 +12,8 @@ import sys
 import numpy as np
 import pytest
 
-from silcr import SILCR, model_file
+from silcr import SILCR
+from silcr.learner import model_file
 from silcr.actor.policy import initial_weights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec

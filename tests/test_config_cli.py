@@ -31,7 +31,7 @@ def test_defaults_are_table_one_except_tau():
 
 def test_d_e_refills_only_with_better_episodes_by_default_and_older_records_read_as_any():
     from silcr.common.config import value_when_absent
-    from silcr.runs import load_run
+    from silcr.common.run_records import load_run
 
     assert _resolve([]).expert_refill == "better" and _resolve(["--expert-refill", "any"]).expert_refill == "any"
     assert value_when_absent("expert_refill") == "any"  # what every run recorded before the option did

@@ -23,7 +23,7 @@ import pytest
 from tests.helpers import REPO, free_port
 
 COMPONENTS = ("silcr.actor", "silcr.learner", "silcr.buffer_service", "silcr.deploy", "silcr.bench", "silcr.cli",
-              "silcr.plot", "silcr.runs", "silcr.figures", "silcr.stats", "silcr.policy_commands")
+              "silcr.plot", "silcr.figures", "silcr.stats", "silcr.policy_commands")
 
 
 def _imports(path: Path) -> set[str]:
@@ -182,6 +182,30 @@ def import_cycles(graph: dict[str, set[str]]) -> list[list[str]]:
 def test_no_two_modules_import_each_other_even_through_others():
     cycles = import_cycles(import_graph(_modules()))
     assert not cycles, f"import circles: {cycles}"
+
+
+def folder_graph(graph: dict[str, set[str]]) -> dict[str, set[str]]:
+    """Which source folders import which (issue 62): `silcr/` is the top (CLI, API), the others below it."""
+    def folder(module: str) -> str:
+        parts = module.split(".")
+        return parts[1] if len(parts) > 1 and parts[1] in PACKAGES and parts[1] != "silcr" else "silcr"
+
+    out: dict[str, set[str]] = {f: set() for f in PACKAGES}
+    for name, imported in graph.items():
+        out[folder(name)] |= {folder(m) for m in imported} - {folder(name)}
+    return out
+
+
+def test_folders_import_in_one_direction():
+    """No folder-level circle (an import inside a function counts): what lower folders need lives below `silcr/`."""
+    cycles = import_cycles(folder_graph(import_graph(_modules())))
+    assert not cycles, f"folders that import each other: {cycles}"
+
+
+def test_the_folder_check_finds_a_lower_folder_reaching_up():
+    graph = import_graph(_modules())
+    graph["silcr.learner.evaluate"] = graph["silcr.learner.evaluate"] | {"silcr.plot"}
+    assert any({"learner", "silcr"} <= set(c) for c in import_cycles(folder_graph(graph)))
 
 
 def test_the_circle_check_finds_a_circle_through_a_function_level_import():

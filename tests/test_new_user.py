@@ -147,7 +147,7 @@ def test_the_smaller_things_a_new_user_saw(tmp_path):
     import gymnasium as gym
 
     from silcr import SILCR
-    from silcr.model_file import ModelFileError
+    from silcr.learner.model_file import ModelFileError
 
     model = SILCR("MountainCarContinuous-v0", runs_dir=tmp_path, hidden=(8, 8), learning_starts=100,
                   expert_capacity=1000, eval_interval=300, eval_episodes=1, torch_threads=1)

@@ -14,7 +14,7 @@ import pytest
 
 from silcr.deploy.sweep import ExperimentError, cell_state, cells_of, load_experiment, parse_seeds, selected_cells
 from silcr.learner.checkpoint import load_checkpoint
-from silcr.runs import wall_seconds
+from silcr.common.run_records import wall_seconds
 from tests.helpers import REPO, Processes, free_port, wait_for
 
 EXPERIMENTS = sorted((REPO / "experiments").glob("*.toml"))

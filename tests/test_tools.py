@@ -12,7 +12,7 @@ import torch
 
 from silcr.common.config import Config
 from silcr.plot import plot, summary_markdown
-from silcr.runs import label_by_variant, load_run
+from silcr.common.run_records import label_by_variant, load_run
 from silcr.learner.checkpoint import save_checkpoint
 from silcr.learner.sac import Sac, SacHyper
 from tests.helpers import REPO
@@ -159,7 +159,7 @@ def test_plot_labels_separate_algorithms_rewards_and_expert_sizes(tmp_path):
 def test_gasil_settings_label_only_gasil_runs(tmp_path):
     """A run of another algorithm is not labelled with GASIL's settings, and a run from before an option
     existed reads as its default (here tanh_log_prob and GASIL's options, added later)."""
-    from silcr.runs import distinguish
+    from silcr.common.run_records import distinguish
 
     dirs = []
     for i, (algo, alpha) in enumerate([("gasil", 0.1), ("gasil", 0.3), ("silcr", 0.1), ("sac", 0.1)]):
@@ -179,7 +179,7 @@ def test_gasil_settings_label_only_gasil_runs(tmp_path):
 
 def test_plot_keeps_runs_of_different_settings_apart_and_plots_other_columns(tmp_path):
     from silcr.common.config import Config
-    from silcr.runs import distinguish
+    from silcr.common.run_records import distinguish
 
     dirs = []
     for i, (tau, admission, seed) in enumerate([(0.05, "return", 0), (0.05, "return", 1), (0.005, "return", 0),
@@ -373,7 +373,7 @@ def test_the_closing_line_gives_the_final_evaluation_with_digits_that_matter(tmp
 
 def test_sweep_cells_are_labelled_by_their_variants_unless_one_name_covers_two_settings(tmp_path):
     from silcr.common.config import Config
-    from silcr.runs import distinguish, label_by_variant
+    from silcr.common.run_records import distinguish, label_by_variant
 
     def cell(root, variant, seed, **settings):
         d = root / f"{variant}_MiniGrid-Empty-8x8-v0_s{seed}"

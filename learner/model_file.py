@@ -67,7 +67,7 @@ def write(path: Path, algo: str, config: dict[str, Any], weights: P.Weights, spe
           training: dict[str, Any] | None = None, evaluation: dict[str, Any] | None = None,
           env_steps: int | None = None) -> None:
     """`env_steps`: how many env steps the policy trained on (a loaded model's `num_timesteps`)."""
-    from silcr.version import __version__
+    from silcr.common.version import __version__
 
     payload = {"format": MODEL_FORMAT, "version": MODEL_VERSION, "silcr": __version__, "algo": algo, "config": config,
                "policy": policy_dict(weights), "spec": spec_dict(spec)}
@@ -108,7 +108,7 @@ def checked(payload: Any, path: Path) -> dict[str, Any]:
 
 
 def _version() -> str:
-    from silcr.version import __version__
+    from silcr.common.version import __version__
 
     return __version__
 
