@@ -10,16 +10,11 @@ from __future__ import annotations
 
 import numpy as np
 
-from silcr.common.protocol import Batch, DiscriminatorRows
+from silcr.common.protocol import Batch, BatchHeader, DiscriminatorRows
 
 from .expert_heap import ExpertHeap
 from .labels import Labeller
 from .online_fifo import OnlineFifo
-
-
-def online_rows(batch_size: int, mixed: bool) -> int:
-    """Rows of each batch drawn from D_O (the first ones); the rest, if `mixed`, come from D_E."""
-    return batch_size - (batch_size // 2 if mixed else 0)
 
 
 def compose_batches(fifo: OnlineFifo, heap: ExpertHeap | None, batches: int, batch_size: int, rng: np.random.Generator,
@@ -31,7 +26,7 @@ def compose_batches(fifo: OnlineFifo, heap: ExpertHeap | None, batches: int, bat
     """
     n = batches * batch_size
     out = Batch.empty(n, obs_dim, act_dim, action_dtype)
-    n_online = online_rows(batch_size, heap is not None)
+    n_online = BatchHeader.online_rows_for(batch_size, heap is not None)
     copy_rewards = labeller.copies_env_rewards
     if n_online == batch_size:
         online, expert = fifo.gather(n, rng, out, slice(0, n), copy_rewards), None

@@ -19,7 +19,7 @@ import numpy as np
 from silcr.common import protocol as P
 from silcr.common.envs import EnvSpec
 
-from .batches import compose_batches, discriminator_rows, online_rows
+from .batches import compose_batches, discriminator_rows
 from .rate_limiter import SamplesPerInsertLimiter
 from .tables import Tables
 
@@ -132,11 +132,10 @@ class Sampler:
             disc = discriminator_rows(self.tables.fifo, heap, k * req.disc_batch_size, req.recent_window, self.rng)
         self.limiter.record_sample(k)
         self.batches_served += k
-        meta = self.meta() | {"batches": k, "batch_size": req.batch_size,
-                              "online_rows": online_rows(req.batch_size, mixed_heap is not None)}
-        if req.disc_batch_size:
-            meta["disc_batch_size"] = req.disc_batch_size
-        return P.BatchReply("ok", meta, batch, disc)
+        layout = P.BatchHeader(algo.name, batches=k, batch_size=req.batch_size,
+                               online_rows=P.BatchHeader.online_rows_for(req.batch_size, mixed_heap is not None),
+                               disc_batch_size=req.disc_batch_size).layout()
+        return P.BatchReply("ok", self.meta() | layout, batch, disc)
 
     def state(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.COUNTERS} | {"request_rejections": dict(self.request_rejections)}

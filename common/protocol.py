@@ -604,10 +604,89 @@ class DiscriminatorRows(_Rows, Generic[A]):
             "disc_recent_actions": "<f4"}
 
 
+class BufferMismatch(RuntimeError):
+    """The buffer service's replies are not what this learner needs (it runs another --algo or --env)."""
+
+
+@dataclass(frozen=True)
+class BatchHeader:
+    """What a reply's `meta` agrees between the buffer and the learner, typed (SB3's `ReplayBufferSamples` in
+    spirit): the buffer's algorithm and transitions received, and the layout of an `ok` reply's rows.
+
+    The layout is worked out here only: `batches` consecutive batches of `batch_size` rows, each batch's
+    first `online_rows` rows from D_O and the rest, when the algorithm mixes, from D_E. `check` is the one
+    test that a buffer's replies suit a learner."""
+
+    algo: str | None  # None: a buffer from before 0.4, which did not name its algorithm
+    env_steps: int = 0
+    batches: int = 0  # 0 in a not_ready reply
+    batch_size: int = 0
+    online_rows: int = 0
+    disc_batch_size: int = 0  # discriminator rows per batch (0: none sent)
+    action_kind: str | None = None  # the rows' actions (an ok reply's batch)
+
+    @staticmethod
+    def online_rows_for(batch_size: int, mixed: bool) -> int:
+        """Rows of each batch drawn from D_O (the first ones); the rest, if `mixed`, come from D_E."""
+        return batch_size - (batch_size // 2 if mixed else 0)
+
+    @classmethod
+    def of(cls, meta: Mapping[str, Any], action_kind: str | None = None, disc: bool = False) -> "BatchHeader":
+        size = int(meta.get("batch_size", 0))
+        return cls(meta.get("algo"), int(meta.get("env_steps", 0)), int(meta.get("batches", 0)), size,
+                   int(meta.get("online_rows", size)), int(meta.get("disc_batch_size", 0)) if disc else 0,
+                   action_kind)
+
+    def layout(self) -> dict[str, int]:
+        """The layout's keys of `meta` (the sampler adds them to the buffer's description)."""
+        out = {"batches": self.batches, "batch_size": self.batch_size, "online_rows": self.online_rows}
+        return out | ({"disc_batch_size": self.disc_batch_size} if self.disc_batch_size else {})
+
+    @property
+    def mixed(self) -> bool:
+        return self.online_rows < self.batch_size
+
+    @property
+    def expert_from(self) -> int | None:
+        """Where D_E's rows start in each batch (None: the batches hold none)."""
+        return self.online_rows if self.mixed else None
+
+    def by_table(self, column: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """A per-row column as (batches, rows) views: D_O's rows, then D_E's (no columns when not mixed)."""
+        rows = column.reshape(self.batches, self.batch_size)
+        return rows[:, :self.online_rows], rows[:, self.online_rows:]
+
+    def check_algo(self, algo: Any) -> None:
+        """The part of `check` any reply (a not_ready one too) can show: the buffer's algorithm's name."""
+        name = self.algo or algo.name  # a buffer before 0.4: the rows' layout (`check`) tells
+        if name != algo.name:
+            raise BufferMismatch(f"the buffer service runs --algo {name}, this learner --algo {algo.name}; "
+                                 f"start both with the same --algo")
+
+    def check(self, algo: Any, env_id: str, action_kind: str) -> None:
+        """BufferMismatch unless the buffer runs `algo` (a `common.algorithms.Algorithm`) for an env of
+        `action_kind`: the same name, and in an `ok` reply D_E rows exactly when the algorithm mixes,
+        discriminator rows when it trains one, and actions of the learner's env's kind."""
+        self.check_algo(algo)
+        if not self.batches:
+            return
+        if self.mixed != algo.mixes_expert:
+            raise BufferMismatch(f"--algo {algo.name}: the buffer service "
+                                 f"{'mixes D_E rows into' if self.mixed else 'sends no D_E rows in'} its batches; "
+                                 f"it runs another --algo (start both with the same --algo)")
+        if algo.discriminator and not self.disc_batch_size:
+            raise BufferMismatch(f"--algo {algo.name}: the buffer service sent no discriminator rows; it runs "
+                                 f"another --algo or predates GASIL (start it with --algo {algo.name})")
+        if self.action_kind != action_kind:
+            raise BufferMismatch(f"the buffer service sent {self.action_kind} actions; this learner's env "
+                                 f"{env_id} has {action_kind} ones (it serves another --env)")
+
+
 @dataclass
 class BatchReply:
     """`status` is `ok` (`batch` holds `meta["batches"]` batches of `meta["batch_size"]` rows, and
-    `disc` the discriminator's rows if they were asked for) or `not_ready` (see `reason`)."""
+    `disc` the discriminator's rows if they were asked for) or `not_ready` (see `reason`). `header`
+    is `meta`'s agreement between buffer and learner, typed."""
 
     status: str
     meta: dict[str, Any]
@@ -615,6 +694,11 @@ class BatchReply:
     disc: DiscriminatorRows | None = None
     reason: str = ""
     retry_after_ms: int = 0
+
+    @property
+    def header(self) -> BatchHeader:
+        return BatchHeader.of(self.meta, self.batch.action_kind if self.batch is not None else None,
+                              self.disc is not None)
 
     def encode(self) -> bytes:
         msg: dict[str, Any] = {"kind": "batch", "status": self.status, "meta": self.meta}
@@ -653,7 +737,7 @@ class BatchReply:
                        retry_after_ms=_int(msg, "retry_after_ms", 0, 60_000, default=0))
         n = _int(meta, "batches", 1, MAX_BATCHES_PER_REQUEST)
         size = _int(meta, "batch_size", 2, MAX_BATCH_SIZE)
-        _int(meta, "online_rows", 1, size, default=size)
+        _int(meta, "online_rows", 1, size, default=size)  # the layout `BatchHeader` reads
         raw = _get(msg, "arrays", dict)
         batch = Batch(**{k: unpack_array(raw.get(k), k, dt) for k, dt in Batch.wire_for(_action_kind(msg)).items()})
         _check_rows(batch, n * size, "batch")

@@ -29,7 +29,7 @@ from .checkpoint import CheckpointError, LearnerCheckpoints
 from .evaluations import Evaluations
 from .row_ages import RowAges
 from .update_clock import UpdateClock
-from .update import BufferMismatch, Update
+from .update import Update
 
 log = logging.getLogger("learner")
 
@@ -97,10 +97,7 @@ class Bookkeeping:
     # -- what the buffer says -------------------------------------------------------------
     def see(self, meta: dict[str, Any]) -> None:
         """Take in a reply's description of the buffer (any reply: a not-ready one too)."""
-        theirs = meta.get("algo", self.algo.name)  # absent from buffers before 0.4 (`note_rows` checks those)
-        if theirs != self.algo.name:
-            raise BufferMismatch(f"the buffer service runs --algo {theirs}, this learner --algo {self.algo.name}; "
-                                 f"start both with the same --algo")
+        P.BatchHeader.of(meta).check_algo(self.algo)
         self.env_steps = max(self.env_steps, int(meta.get("env_steps", 0)))
         if "expert_transitions" in meta:
             self.buffer_meta = meta

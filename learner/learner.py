@@ -16,7 +16,7 @@ from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 
 from .bookkeeping import Bookkeeping
-from .update import Update, check_rows
+from .update import Update
 
 
 class Learner:
@@ -26,8 +26,8 @@ class Learner:
 
     def step(self, reply: P.BatchReply) -> None:
         """Train on one `ok` reply (one update per batch), then publish weights and checkpoint when due."""
+        reply.header.check(self.books.algo, self.update.spec.env_id, self.update.spec.action_kind)
         self.books.see(reply.meta)
-        check_rows(reply, self.update.cfg.algo)
         self.books.note_rows(reply)
         t0 = time.monotonic()
         n = self.update.train(reply, self.books.updates)

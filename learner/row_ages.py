@@ -29,13 +29,10 @@ class RowAges:
 
     def note(self, reply: P.BatchReply, policy_version: int) -> None:
         """The ages of an `ok` reply's rows, its first `online_rows` of each batch from D_O, the rest from D_E."""
-        n, size = int(reply.meta["batches"]), int(reply.meta["batch_size"])
-        online = int(reply.meta.get("online_rows", size))
-        versions = reply.batch.policy_version.reshape(n, size)
-        lag = _mean_lag(policy_version, versions[:, :online])
-        if lag is not None:
+        online, expert = reply.header.by_table(reply.batch.policy_version)
+        if (lag := _mean_lag(policy_version, online)) is not None:
             self.policy_lag.append(lag)
-        if online < size and (age := _mean_lag(policy_version, versions[:, online:])) is not None:
+        if expert.size and (age := _mean_lag(policy_version, expert)) is not None:
             self.expert_age.append(age)
 
     def stats(self) -> dict[str, float | None]:

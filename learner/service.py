@@ -20,7 +20,6 @@ from silcr.common.role_session import role_session
 
 from .checkpoint import CheckpointError
 from .learner import Learner
-from .update import BufferMismatch
 
 log = logging.getLogger("learner")
 
@@ -42,14 +41,14 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         lrn.start()
         stream.wait_for_buffer()
         finished = False
-        mismatch: BufferMismatch | None = None
+        mismatch: P.BufferMismatch | None = None
         for batch in stream:
             try:
                 if batch is not None:
                     lrn.step(batch)
                 else:
                     lrn.see(stream.last_meta)
-            except BufferMismatch as e:
+            except P.BufferMismatch as e:
                 log.error("%s", e)
                 mismatch = e
                 break

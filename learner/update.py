@@ -19,11 +19,11 @@ from typing import Any
 import numpy as np
 import torch
 
-from silcr.common.process_env import openmp_wait
 from silcr.common import protocol as P
 from silcr.common.algorithms import LABEL_MAX, algorithm
 from silcr.common.config import Config, critics_of
 from silcr.common.envs import EnvSpec
+from silcr.common.process_env import openmp_wait
 
 from . import denormals
 from .gasil import Gasil, GasilHyper
@@ -65,21 +65,6 @@ def synthetic_batch(spec: EnvSpec, n: int) -> tuple[torch.Tensor, ...]:
                else torch.rand(n, spec.act_dim, generator=g) * 2 - 1)
     return (torch.randn(n, spec.obs_dim, generator=g), actions, torch.randint(0, 2, (n,), generator=g).float(),
             torch.randn(n, spec.obs_dim, generator=g), torch.zeros(n), torch.zeros(n))
-
-
-class BufferMismatch(RuntimeError):
-    """The buffer service's batches are not what this learner's --algo needs (it runs another --algo)."""
-
-
-def check_rows(reply: P.BatchReply, algo: str) -> None:
-    """A reply's batches mix D_E rows exactly when `algo` does; BufferMismatch otherwise (a buffer too old to
-    name its algorithm in its replies runs another --algo)."""
-    size = int(reply.meta["batch_size"])
-    online = int(reply.meta.get("online_rows", size))  # rows of each batch from D_O; the rest are D_E's
-    if (online < size) != algorithm(algo).mixes_expert:
-        raise BufferMismatch(f"--algo {algo}: the buffer service "
-                             f"{'mixes D_E rows into' if online < size else 'sends no D_E rows in'} its batches; "
-                             f"it runs another --algo (start both with the same --algo)")
 
 
 class Update:
@@ -145,15 +130,8 @@ class Update:
 
     def train(self, reply: P.BatchReply, updates_done: int) -> int:
         """One update per batch of `reply` (`updates_done` updates came before); how many it made."""
-        n, size = int(reply.meta["batches"]), int(reply.meta["batch_size"])
-        online = int(reply.meta.get("online_rows", size))  # each batch's first `online` rows are D_O's, the rest D_E's
-        expert_from = online if online < size else None
-        if self.gasil is not None and reply.disc is None:
-            raise BufferMismatch("--algo gasil: the buffer service sent no discriminator rows; it runs another --algo "
-                                 "or predates GASIL (start it with --algo gasil)")
-        if reply.batch.action_kind != self.spec.action_kind:
-            raise BufferMismatch(f"the buffer service sent {reply.batch.action_kind} actions; this learner's env "
-                                 f"{self.spec.env_id} has {self.spec.action_kind} ones (it serves another --env)")
+        header = reply.header  # checked by the learner (`BatchHeader.check`) before it gets here
+        n, size, expert_from = header.batches, header.batch_size, header.expert_from
         batch = reply.batch.map(lambda a: to_tensor(a, self.device))
         disc = reply.disc.map(lambda a: to_tensor(a, self.device)) if reply.disc is not None else None
         term, trunc = batch.terminated.float(), batch.truncated.float()

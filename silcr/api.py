@@ -26,7 +26,7 @@ from typing import Any, Callable, ClassVar
 import numpy as np
 
 from silcr.learner import model_file
-from silcr.common.algorithms import ALGORITHMS
+from silcr.common.algorithms import ALGORITHMS, algorithm
 from silcr.common.config import FIELDS, Config, ConfigError, absent_values, default_run_name, from_options
 from silcr.training import DistributedTraining, InProcessTraining
 
@@ -99,11 +99,25 @@ def _run_name(algo: str, env_id: str) -> str:
     return default_run_name(env_id, algo)  # the command line's scheme
 
 
+def _algorithm_doc(name: str) -> str:
+    a = ALGORITHMS[name]
+    return (f"{a.summary} ({a.source}).\n\nA silcr model in Stable-Baselines3's shape: "
+            f"{name.upper()}(env, actors=0, seed=0, run=None, device='cpu', **options), then learn, save, load, "
+            f"predict (docs/api.md).")
+
+
 class Model:
     """An algorithm of silcr's registry, trained in this process (`actors=0`) or by the distributed system
     (`actors=N`: a router, the buffer service, the learner and N actors as processes, stopped on return)."""
 
     algo: ClassVar[str] = ""
+
+    def __init_subclass__(cls, **kwargs: Any) -> None:
+        """A class named after a registry entry (`SILCR`) is that algorithm's; a user's subclass of one keeps it."""
+        super().__init_subclass__(**kwargs)
+        if not cls.algo:
+            cls.algo = algorithm(cls.__name__.lower()).name  # ValueError naming the registry's algorithms
+            cls.__doc__ = _algorithm_doc(cls.algo)
 
     def __init__(self, env: str | Callable[[], Any], *, actors: int = 0, seed: int = 0, run: str | None = None,
                  device: str = "cpu", runs_dir: str | Path = "runs", **options: Any) -> None:
@@ -312,38 +326,27 @@ def _checked(values: dict[str, Any]) -> Config:
     return cfg
 
 
-def _algorithm_doc(name: str) -> str:
-    a = ALGORITHMS[name]
-    return (f"{a.summary} ({a.source}).\n\nA silcr model in Stable-Baselines3's shape: "
-            f"{name.upper()}(env, actors=0, seed=0, run=None, device='cpu', **options), then learn, save, load, "
-            f"predict (docs/api.md).")
-
-
-# One class per algorithm of the registry, written out so that IDEs and type checkers see them;
-# tests/test_api.py checks that these are exactly the registry's, each with its entry's name.
+# One class per algorithm of the registry, written out so that IDEs and type checkers see them; each takes
+# its algorithm from its name (`Model.__init_subclass__`), and tests/test_api.py checks that they are exactly
+# the registry's.
 class SILCR(Model):
-    __doc__ = _algorithm_doc("silcr")
-    algo = "silcr"
+    pass
 
 
 class SAC(Model):
-    __doc__ = _algorithm_doc("sac")
-    algo = "sac"
+    pass
 
 
 class SQIL(Model):
-    __doc__ = _algorithm_doc("sqil")
-    algo = "sqil"
+    pass
 
 
 class GASIL(Model):
-    __doc__ = _algorithm_doc("gasil")
-    algo = "gasil"
+    pass
 
 
 class IRCR(Model):
-    __doc__ = _algorithm_doc("ircr")
-    algo = "ircr"
+    pass
 
 
 #: The classes by name (`SILCR`, `SAC`, ...).

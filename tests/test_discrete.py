@@ -198,8 +198,10 @@ def test_the_actors_categorical_policy_is_the_learners():
 
 
 def test_the_learner_trains_the_discrete_update_on_integer_batches_and_saves_it():
+    from silcr.common.algorithms import algorithm
+    from silcr.common.protocol import BufferMismatch
     from silcr.learner.sac_discrete import DiscreteSac
-    from silcr.learner.update import BufferMismatch, Update
+    from silcr.learner.update import Update
 
     spec = EnvSpec.of("silcr/PointGoalDiscrete-v0")
     cfg = Config(run="t", env=spec.env_id, hidden=[8, 8], batch_size=4, torch_threads=1)
@@ -220,8 +222,9 @@ def test_the_learner_trains_the_discrete_update_on_integer_batches_and_saves_it(
     again.restore(update.state(), "memory")
     assert torch.equal(again.sac.log_alpha, update.sac.log_alpha)
     continuous = P.Batch.empty(4, spec.obs_dim, 1)
-    with pytest.raises(BufferMismatch, match="continuous actions"):
-        update.train(P.BatchReply("ok", {"batches": 1, "batch_size": 4}, continuous), 1)
+    with pytest.raises(BufferMismatch, match="continuous actions"):  # the learner's one check of a reply
+        P.BatchReply("ok", {"batches": 1, "batch_size": 4, "online_rows": 2}, continuous).header.check(
+            algorithm("silcr"), spec.env_id, spec.action_kind)
 
 
 # -- what is refused -----------------------------------------------------------------

@@ -265,10 +265,10 @@ def test_fuzzed_batch_replies_are_trainable_or_rejected(replay):
         if reply.status != "ok":
             assert reply.retry_after_ms >= 0
             return
-        n, size = int(reply.meta["batches"]), int(reply.meta["batch_size"])
-        online = int(reply.meta.get("online_rows", size))
-        versions = reply.batch.policy_version.reshape(n, size)  # the learner's lag accounting
-        assert versions[:, :online].size and 1 <= online <= size
+        header = reply.header
+        n, size, online = header.batches, header.batch_size, header.online_rows
+        online_versions, _ = header.by_table(reply.batch.policy_version)  # the learner's lag accounting
+        assert online_versions.size and 1 <= online <= size
         for b in range(n):
             rows = reply.batch.rows(b, size).map(lambda a: to_tensor(a, torch.device("cpu")))
             assert rows.obs.shape[0] == rows.rewards.shape[0] == size and torch.isfinite(rows.rewards).all()
