@@ -2,7 +2,7 @@
 
 `Actor` is the rollout alone: its envs and episodes in progress, stepped one batched
 forward pass at a time, writing finished episodes through an `EpisodeWriter` and
-acting with a `WeightsClient`'s policy (silcr.common.clients). `run_actor` is the
+acting with a `WeightsClient`'s policy (silcr.common.weights_channel). `run_actor` is the
 process around it over Zenoh: wait while no buffer service listens, pause while the
 buffer's rate limiter says actors are ahead, take new weights every `--weights-poll-steps`
 steps, publish stats.
@@ -19,11 +19,13 @@ import numpy as np
 
 from silcr.common import protocol as P
 from silcr.common import seeds
-from silcr.common.clients import EpisodeWriter, Presence, WeightsClient, ZenohEpisodeWriter, ZenohWeightsClient
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec, make_env
+from silcr.common.episode_channel import EpisodeWriter, ZenohEpisodeWriter
 from silcr.common.lifecycle import StopFlag
+from silcr.common.presence import Presence
 from silcr.common.role_session import role_session
+from silcr.common.weights_channel import WeightsClient, ZenohWeightsClient
 
 from .policy import Policy, initial_weights, usable_policy
 

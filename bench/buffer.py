@@ -19,13 +19,12 @@ import zenoh
 from silcr.buffer_service.batches import compose_batches
 from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
-from silcr.common.clients import ZenohBatchStream
-from silcr.common.lifecycle import StopFlag
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
-from silcr.learner.sac import Sac, SacHyper
-
+from silcr.common.lifecycle import StopFlag
+from silcr.common.sample_channel import ZenohBatchStream
 from silcr.deploy.monitor import StatsSnapshot
+from silcr.learner.sac import Sac, SacHyper
 
 from .procs import Components, wait_until
 from .reference_sac import random_batch

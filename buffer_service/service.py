@@ -15,11 +15,13 @@ import time
 
 from silcr.common import protocol as P
 from silcr.common import run_end
-from silcr.common.clients import Presence, SampleQuery, Throttle, ZenohReplayServer, finished_reason
 from silcr.common.config import Config
+from silcr.common.control_channel import Throttle, finished_reason
 from silcr.common.envs import EnvSpec
 from silcr.common.inbox import Inbox
 from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag
+from silcr.common.presence import Presence
+from silcr.common.replay_server import SampleQuery, ZenohReplayServer
 from silcr.common.resources import release_free_memory
 from silcr.common.role_session import role_session
 from silcr.common.schedule import Every

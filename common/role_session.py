@@ -19,8 +19,8 @@ from typing import Iterator
 import zenoh
 
 from silcr.common import protocol as P
-from silcr.common.clients import StatsPublisher, stop_on_shutdown
 from silcr.common.config import Config
+from silcr.common.control_channel import StatsPublisher, stop_on_shutdown
 from silcr.common.envs import EnvSpec
 from silcr.common.health import Heartbeat
 from silcr.common.lifecycle import StopFlag

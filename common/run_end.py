@@ -93,7 +93,7 @@ def announce(cfg: Config, seconds: float = ANNOUNCE_S) -> None:
     import time
 
     from silcr.common import protocol as P
-    from silcr.common.clients import Shutdown
+    from silcr.common.control_channel import Shutdown
     from silcr.common.zenoh_session import open_session, session_config
 
     def repeat() -> None:

@@ -28,12 +28,17 @@ from pathlib import Path
 from typing import Any, Callable
 
 from silcr.common import protocol as P
-from silcr.common import run_layout
-from silcr.common import seeds
-from silcr.common.clients import Shutdown
+from silcr.common import run_layout, seeds
 from silcr.common.config import Config, actor_zenoh_mode
-from silcr.common.lifecycle import (EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, caller_signal_handlers,
-                                    interrupt_on_ctrl_c, setup_logging)
+from silcr.common.control_channel import Shutdown
+from silcr.common.lifecycle import (
+    EXIT_CANNOT_START,
+    EXIT_STALE_CHECKPOINT,
+    StopFlag,
+    caller_signal_handlers,
+    interrupt_on_ctrl_c,
+    setup_logging,
+)
 from silcr.common.zenoh_session import open_session, session_config
 from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
 from silcr.deploy.monitor import StatsSnapshot

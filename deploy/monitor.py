@@ -17,7 +17,7 @@ import time
 from typing import Any
 
 from silcr.common import protocol as P
-from silcr.common.clients import stop_on_shutdown
+from silcr.common.control_channel import stop_on_shutdown
 from silcr.common.lifecycle import StopFlag
 from silcr.common.zenoh_session import open_session, session_config
 

@@ -26,7 +26,7 @@ def run_router(listen: list[str], connect: list[str], zenoh_config: str, stop: S
                  f"; following run {run}" if run else "")
         ended = StopFlag()
         if run:
-            from silcr.common.clients import stop_on_shutdown
+            from silcr.common.control_channel import stop_on_shutdown
 
             stop_on_shutdown(session, P.Keys(run), ended)
         while not stop.wait(1.0):

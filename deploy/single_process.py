@@ -2,7 +2,7 @@
 
 No Zenoh, no router, no other process: the same `ReplayState`, `Learner` and
 `Actor` as a distributed run, joined by the in-process clients of
-silcr.common.clients. Each round:
+the channel modules of silcr.common (episode_channel, sample_channel, weights_channel). Each round:
 
 1. every actor, in id order, steps each of its envs once with its current policy
    (new weights are taken every `--weights-poll-steps` steps); finished episodes
@@ -38,13 +38,14 @@ from typing import Any, Callable
 from silcr.actor.service import Actor, policy_factory, random_initial_weights
 from silcr.buffer_service import snapshot
 from silcr.buffer_service.replay import checkpoint_path, open_replay
-from silcr.common import run_layout
-from silcr.common import seeds
-from silcr.common.clients import InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
+from silcr.common import run_layout, seeds
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
+from silcr.common.episode_channel import InProcessEpisodeWriter
 from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT, StopFlag, caller_signal_handlers
+from silcr.common.sample_channel import InProcessBatchStream
 from silcr.common.schedule import Every
+from silcr.common.weights_channel import InProcessWeights
 from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
 from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.learner import Learner

@@ -21,15 +21,15 @@ from typing import Any
 from silcr.common import protocol as P
 from silcr.common import run_end
 from silcr.common.algorithms import algorithm
-from silcr.common.clients import WeightsServer
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
+from silcr.common.weights_channel import WeightsServer
 
 from .checkpoint import CheckpointError, LearnerCheckpoints
 from .evaluations import Evaluations
 from .row_ages import RowAges
-from .update_clock import UpdateClock
 from .update import Update
+from .update_clock import UpdateClock
 
 log = logging.getLogger("learner")
 

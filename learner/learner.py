@@ -11,9 +11,9 @@ import time
 from typing import Any
 
 from silcr.common import protocol as P
-from silcr.common.clients import WeightsServer
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
+from silcr.common.weights_channel import WeightsServer
 
 from .bookkeeping import Bookkeeping
 from .update import Update

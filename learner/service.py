@@ -13,10 +13,12 @@ import logging
 import time
 
 from silcr.common import protocol as P
-from silcr.common.clients import Shutdown, ZenohBatchStream, ZenohWeightsServer
 from silcr.common.config import Config
+from silcr.common.control_channel import Shutdown
 from silcr.common.lifecycle import EXIT_CANNOT_START, EXIT_STALE_CHECKPOINT, StopFlag, ignore_stop_signals
 from silcr.common.role_session import role_session
+from silcr.common.sample_channel import ZenohBatchStream
+from silcr.common.weights_channel import ZenohWeightsServer
 
 from .checkpoint import CheckpointError
 from .learner import Learner

@@ -252,12 +252,7 @@ class Model:
             other = next((c.__name__ for c in MODELS.values() if c.algo == payload["algo"]), payload["algo"])
             raise model_file.ModelFileError(f"{path} holds a {payload['algo']} model, not {cls.algo}: load it with "
                                             f"silcr.{other}.load")
-        # A setting the file lacks ran as it did before the option existed (critics saved before LayerNorm was the default)
-        cfg = Config(**(absent_values() | {k: v for k, v in payload["config"].items() if k in FIELDS}))
-        actors = 0 if cfg.single_process else cfg.actors
-        spec = model_file.spec_of(payload["spec"])
-        if env is not None:
-            cfg.env, spec = _env_like(env, actors, spec)
+        cfg, actors, spec = _saved_run(payload, env)
         cfg.device, cfg.runs_dir, cfg.run = device, str(runs_dir), run or _run_name(cls.algo, cfg.env)
         steps = int(payload.get("env_steps", (payload.get("evaluation") or {}).get("env_steps", 0)))  # num_timesteps
         if include_training_state:
@@ -299,6 +294,17 @@ def _check_learn(total_steps: Any, trainable: bool) -> None:
     if not trainable:
         raise ValueError("this model was loaded for predict only: load it with include_training_state=True to "
                          "train it further")
+
+
+def _saved_run(payload: dict[str, Any], env: Any) -> tuple[Config, int, Any]:
+    """A model file's configuration, actors and env spec, with `env` (if given) in place of the saved one."""
+    # A setting the file lacks ran as it did before the option existed (critics saved before LayerNorm was the default)
+    cfg = Config(**(absent_values() | {k: v for k, v in payload["config"].items() if k in FIELDS}))
+    actors = 0 if cfg.single_process else cfg.actors
+    spec = model_file.spec_of(payload["spec"])
+    if env is not None:
+        cfg.env, spec = _env_like(env, actors, spec)
+    return cfg, actors, spec
 
 
 def _env_like(env: Any, actors: int, saved: Any) -> tuple[str, Any]:

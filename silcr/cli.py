@@ -15,9 +15,11 @@ import os
 import re
 import shlex
 import sys
+
 from silcr.common import run_end
 from silcr.common.commands import command  # noqa: F401  (tests and scripts import it from here)
-from silcr.common.config import ConfigError, add_options, resolve
+from silcr.common.config import ConfigError, resolve
+from silcr.common.option_parser import add_options
 from silcr.deploy import preflight
 
 ROLES_HELP = {
@@ -240,7 +242,8 @@ def _main(argv: list[str] | None) -> int:
         if args.tag and not re.fullmatch(r"[A-Za-z0-9_.-]+", args.tag):
             subs[role].error(f"--tag: {args.tag!r} may hold only letters, digits, '_', '.' and '-'")
         if args.which == "model":
-            from silcr.bench.scale_model import RecordsError, run as run_model
+            from silcr.bench.scale_model import RecordsError
+            from silcr.bench.scale_model import run as run_model
 
             try:
                 run_model(Path(args.records), Path(args.out), args.updates_per_s)

@@ -12,9 +12,11 @@ import torch
 from silcr.actor.policy import NumpyPolicy, initial_weights
 from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
-from silcr.common.clients import BatchStream, InProcessBatchStream, InProcessEpisodeWriter, InProcessWeights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
+from silcr.common.episode_channel import InProcessEpisodeWriter
+from silcr.common.sample_channel import BatchStream, InProcessBatchStream
+from silcr.common.weights_channel import InProcessWeights
 from tests.conftest import make_episode
 
 OBS, ACT = 4, 1
@@ -130,7 +132,8 @@ def test_a_paused_writer_sleeps_until_the_buffer_lets_it_go_on():
     import threading
     import time
 
-    from silcr.common.clients import Throttle, ZenohEpisodeWriter
+    from silcr.common.control_channel import Throttle
+    from silcr.common.episode_channel import ZenohEpisodeWriter
     from silcr.common.lifecycle import StopFlag
     from silcr.common.zenoh_session import open_session, router_config, session_config
     from tests.helpers import free_port, wait_for
@@ -161,8 +164,8 @@ def test_a_paused_writer_sleeps_until_the_buffer_lets_it_go_on():
 def test_a_malformed_weights_message_is_counted_even_when_a_newer_set_replaces_it_unread():
     """The actor takes only the newest weights; a bad message that a good one follows before the actor
     looks (a paused actor looks every 0.25 s) is still counted, as it arrives."""
-    from silcr.common.clients import ZenohWeightsClient
     from silcr.common.lifecycle import StopFlag
+    from silcr.common.weights_channel import ZenohWeightsClient
     from silcr.common.zenoh_session import open_session, router_config, session_config
     from tests.helpers import free_port, wait_for
 

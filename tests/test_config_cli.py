@@ -261,7 +261,8 @@ def test_a_misspelt_option_is_named_by_its_subcommand_with_the_option_meant():
 
 
 def test_help_groups_every_option():
-    from silcr.common.config import FIELDS, OPTION_GROUPS
+    from silcr.common.config import FIELDS
+    from silcr.common.option_parser import OPTION_GROUPS
 
     grouped = [name for names in OPTION_GROUPS.values() for name in names]
     assert sorted(grouped) == sorted(FIELDS)  # every option in exactly one group

@@ -8,9 +8,9 @@ import torch
 
 from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
-from silcr.common.clients import InProcessWeights
 from silcr.common.config import GASIL_REWARD_FORMS, Config
 from silcr.common.envs import EnvSpec
+from silcr.common.weights_channel import InProcessWeights
 from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.gasil import Gasil, GasilHyper, reward_from_logit
 from silcr.learner.learner import Learner

@@ -8,9 +8,9 @@ import numpy as np
 
 from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
-from silcr.common.clients import InProcessWeights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
+from silcr.common.weights_channel import InProcessWeights
 from silcr.learner.checkpoint import load_checkpoint
 from silcr.learner.learner import Learner
 from tests.conftest import make_episode

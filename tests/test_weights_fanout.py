@@ -3,7 +3,7 @@ it is handed. A real run with a budget that holds publications back is in tests/
 
 from __future__ import annotations
 
-from silcr.common.clients import FanoutPacer
+from silcr.common.fanout import FanoutPacer
 
 
 class Clock:

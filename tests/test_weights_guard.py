@@ -14,9 +14,10 @@ from silcr.actor.policy import initial_weights
 from silcr.actor.service import Actor, policy_factory
 from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
-from silcr.common.clients import InProcessEpisodeWriter, InProcessWeights
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
+from silcr.common.episode_channel import InProcessEpisodeWriter
+from silcr.common.weights_channel import InProcessWeights
 from tests.helpers import LatestJson, Processes, client_when_up, free_port, wait_for
 
 ENV = "InvertedPendulum-v5"
