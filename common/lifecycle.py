@@ -3,6 +3,11 @@
 Every long-running loop polls `StopFlag.is_set()` (or waits on it), so Ctrl-C,
 `kill`, a shutdown message or the death of the launching process all end the
 component through the same clean path: close the Zenoh session, flush files.
+
+This is the one module that installs signal handlers (tests/test_layout.py): a component's
+(`StopFlag.install_signal_handlers`), a launcher's loop (`stop_signals_interrupt`), an in-process
+run's (`stop_on_signals`), the quiet end of a run (`ignore_stop_signals`), each with the caller's
+handlers back afterwards where a launcher runs inside another program (`caller_signal_handlers`).
 """
 
 from __future__ import annotations
@@ -91,12 +96,29 @@ def ignore_stop_signals() -> None:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
 
 
-def interrupt_on_ctrl_c() -> None:
-    """Ctrl-C raises KeyboardInterrupt here, even where SIGINT came ignored from the parent (a
-    shell's background job, `nohup`): the launchers' children stop on SIGINT whatever they
-    inherited (`StopFlag`), so a launcher that ignored it would see them end and call the
-    run finished."""
+def _raise_interrupt(signum: int, frame: object) -> None:
+    raise KeyboardInterrupt
+
+
+def stop_signals_interrupt() -> None:
+    """Ctrl-C and SIGTERM (`kill`, an orchestrator's stop) both raise KeyboardInterrupt here: a launcher's loop
+    takes one clean path for either. Ctrl-C does so even where SIGINT came ignored from the parent (a shell's
+    background job, `nohup`): the launchers' children stop on SIGINT whatever they inherited (`StopFlag`), so a
+    launcher that ignored it would see them end and call the run finished."""
     signal.signal(signal.SIGINT, signal.default_int_handler)
+    signal.signal(signal.SIGTERM, _raise_interrupt)
+
+
+@contextlib.contextmanager
+def stop_on_signals(stop: StopFlag) -> Iterator[StopFlag]:
+    """Within the block Ctrl-C and SIGTERM set `stop`: one clean stop, and a second Ctrl-C forces (exit 130).
+    The caller's handlers come back after it. Off the main thread, where Python cannot set handlers, it
+    installs nothing."""
+    if threading.current_thread() is not threading.main_thread():
+        yield stop
+        return
+    with caller_signal_handlers():
+        yield stop.install_signal_handlers()
 
 
 def setup_logging(component: str, level: int = logging.INFO) -> logging.Logger:

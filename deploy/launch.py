@@ -1,4 +1,4 @@
-"""Running a checked configuration: the one path below `silcr train` and the Python API.
+"""Running a checked configuration: the one launcher below `silcr train` and the Python API.
 
 `train(cfg)` runs `cfg` to its end and returns the exit code `silcr train` ends with: in this
 process with `--single-process`, else as a router, a buffer service, a learner and the actors
@@ -6,12 +6,19 @@ in processes of their own (`local.run_train`). Before anything starts it takes t
 directory (one run per directory: `run_lock`) and, for a distributed run, checks that the
 router's port is free; either refusal raises before a file is written. With `--resume` on a run whose
 budget is spent it writes nothing at all: one line, and exit code 0 (`common/run_end.py`).
+
+`run_directory(cfg)` is what every way of training holds for a run's life (this `train`, and the
+Python API's in-process model from its first `learn` to `close`): the lock, the logs folder, the
+configuration saved. The options were checked before (`config`, `preflight`: the device too); how
+Ctrl-C and SIGTERM stop a run is `common/lifecycle.py`'s (one clean stop; a second Ctrl-C forces).
 """
 
 from __future__ import annotations
 
-from typing import Any, Callable
+import contextlib
+from typing import Any, Callable, Iterator
 
+from silcr.common import run_layout
 from silcr.common.config import Config, ConfigError
 from silcr.common.run_lock import check_free, hold
 
@@ -36,7 +43,7 @@ def train(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = None, w
 
         if port_in_use(cfg.zenoh_listen):
             raise ConfigError("--zenoh-listen", f"{cfg.zenoh_listen} is already in use (another run?); pick another port")
-    with hold(cfg.run_dir):  # for the run's life: one run directory, one run
+    with run_directory(cfg):
         if cfg.single_process:
             from silcr.deploy.single_process import run_single_process
 
@@ -44,3 +51,13 @@ def train(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = None, w
         from silcr.deploy.local import run_train
 
         return run_train(cfg, on_row, who)
+
+
+@contextlib.contextmanager
+def run_directory(cfg: Config) -> Iterator[None]:
+    """The run directory held for the run's life (RunInUse if another process holds it), with its logs folder
+    and `cfg` saved as config.toml (saved again by a caller that raises the budget)."""
+    with hold(cfg.run_dir):  # one run directory, one run
+        run_layout.logs(cfg.run_dir).mkdir(parents=True, exist_ok=True)
+        cfg.save(run_layout.config(cfg.run_dir))
+        yield

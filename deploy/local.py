@@ -19,7 +19,6 @@ from __future__ import annotations
 import json
 import logging
 import os
-import signal
 import socket
 import subprocess
 import sys
@@ -36,8 +35,9 @@ from silcr.common.lifecycle import (
     EXIT_STALE_CHECKPOINT,
     StopFlag,
     caller_signal_handlers,
-    interrupt_on_ctrl_c,
+    ignore_stop_signals,
     setup_logging,
+    stop_signals_interrupt,
 )
 from silcr.common.zenoh_session import open_session, session_config
 from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
@@ -189,11 +189,6 @@ class LocalRun:
                     p.join(5)
 
 
-def _sigterm_as_interrupt(signum: int, frame: object) -> None:
-    """`kill` of the launcher takes the same clean path as Ctrl-C."""
-    raise KeyboardInterrupt
-
-
 RowCallback = Callable[[dict[str, Any]], bool]
 
 
@@ -209,9 +204,7 @@ def run_train(cfg: Config, on_row: RowCallback | None = None, who: str = "silcr 
 
 
 def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> int:
-    run_dir = cfg.run_dir
-    run_layout.logs(run_dir).mkdir(parents=True, exist_ok=True)
-    cfg.save(run_layout.config(run_dir))  # the CLI checked the port and holds the run directory's lock
+    run_dir = cfg.run_dir  # held by the launcher (`launch.run_directory`), which checked the port
     child_cfg = Config(**cfg.to_dict())
     if not child_cfg.connect:
         child_cfg.connect = [cfg.zenoh_listen]
@@ -222,8 +215,7 @@ def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> int:
     keys = P.Keys(cfg.run)
     stats = StatsSnapshot(keys)
     code = 0
-    signal.signal(signal.SIGTERM, _sigterm_as_interrupt)
-    interrupt_on_ctrl_c()
+    stop_signals_interrupt()  # `kill` of the launcher takes the same clean path as Ctrl-C
     try:
         run.start("router", cfg, "router")
         deadline = time.monotonic() + 15
@@ -263,7 +255,7 @@ def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> int:
         print(f"{who}: the callback stopped training; stopping all components", file=sys.stderr)
         code = 130
     finally:
-        signal.signal(signal.SIGINT, signal.SIG_IGN)  # let the children finish their clean exit
+        ignore_stop_signals()  # let the children finish their clean exit
         run.stop_all(order)
     stale = [name for name in ("learner", "buffer") if name in run.procs
              and run.procs[name].exitcode == EXIT_STALE_CHECKPOINT]

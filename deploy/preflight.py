@@ -1,5 +1,6 @@
 """Checks of a run's options that need more than their values: the env (can it be made, what are its
-actions), the machine (memory for the buffers and actors), the Zenoh endpoints, the files named.
+actions), the machine (memory for the buffers and actors, a GPU for --device cuda), the Zenoh endpoints,
+the files named.
 
 `check(cfg, role)` raises ConfigError naming the option, as `config.validate` does, before anything
 is started or written. The command line runs it after parsing, the Python API after its options.
@@ -46,6 +47,13 @@ def check(cfg: Config, role: str) -> None:
                         load_demos(Path(path), spec)
                 except DemosError as e:
                     raise ConfigError(option, str(e)) from None
+    if role in ("train", "learner") and cfg.device == "cuda":  # every way of training: CLI, API, a learner alone
+        from silcr.learner.update import pick_device
+
+        try:
+            pick_device("cuda")
+        except ValueError as e:
+            raise ConfigError("--device", str(e).removeprefix("--device cuda: ")) from None
     for option, endpoints in (("--connect", cfg.connect), ("--listen", cfg.listen),
                               ("--zenoh-listen", [cfg.zenoh_listen] if role == "train" else [])):
         for endpoint in endpoints:

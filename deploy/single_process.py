@@ -30,7 +30,6 @@ There is no stats topic: the progress bar, progress.csv and TensorBoard report.
 from __future__ import annotations
 
 import logging
-import signal
 import sys
 import time
 from typing import Any, Callable
@@ -42,7 +41,7 @@ from silcr.common import run_layout, seeds
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.episode_channel import InProcessEpisodeWriter
-from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT, StopFlag, caller_signal_handlers
+from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT, StopFlag, ignore_stop_signals, stop_on_signals
 from silcr.common.sample_channel import InProcessBatchStream
 from silcr.common.schedule import Every
 from silcr.common.weights_channel import InProcessWeights
@@ -74,7 +73,7 @@ class SingleProcessRun:
             self.learner = Learner(cfg, spec, self.board)
         except CheckpointError as e:
             raise ResumeError(str(e)) from None
-        self.learner.start()  # the first weights are on the board before any actor acts
+        self.learner.books.start()  # the first weights are on the board before any actor acts
         # A hard kill leaves the two checkpoints at different moments: the limiter takes the learner's count.
         self.replay.take_learner_count(self.learner.books.incarnation, self.learner.books.updates)
         actor_cfg = cfg
@@ -84,7 +83,7 @@ class SingleProcessRun:
                              self.board.client(policy_factory(spec),
                                                random_initial_weights(actor_cfg, spec, seeds.actor(actor_cfg.seed, i))()))
                        for i in range(cfg.actors)]
-        self.stream = InProcessBatchStream(self.replay, self.learner.sample_request(), None)
+        self.stream = InProcessBatchStream(self.replay, self.learner.update.sample_request(), None)
         self.checkpoints = snapshot.PeriodicCheckpoints(checkpoint_path(cfg), cfg.buffer_checkpoint_interval)
         self.checkpoints.restore_parts(snap, self.replay)
         self._polled = [0] * len(self.actors)
@@ -118,21 +117,21 @@ class SingleProcessRun:
                         actor.weights.update()
             for batch in self.stream.due():
                 learner.step(batch)
-            learner.see(self.stream.last_meta)
-            learner.poll()
-            if learner.done(starved=not collecting):
+            learner.books.see(self.stream.last_meta)
+            learner.books.poll()
+            if learner.books.done(starved=not collecting):
                 finished = True
                 break
             now = time.monotonic()
             self.checkpoints.maybe(replay, now)
             if show.due(now):
-                stats = learner.stats()
-                learner.record_scalars(stats)
+                stats = learner.books.stats()
+                learner.books.record_scalars(stats)
                 if display is not None:
                     display.show(replay.transitions_received, stats)
         if display is not None:
-            display.show(replay.transitions_received, learner.stats())
-        self.checkpoint_written = learner.settle(finished)
+            display.show(replay.transitions_received, learner.books.stats())
+        self.checkpoint_written = learner.books.settle(finished)
         if raised is not None:
             raise raised
         if finished and evaluated is not None:
@@ -159,20 +158,17 @@ class SingleProcessRun:
 
 
 def run_single_process(cfg: Config) -> int:
-    with caller_signal_handlers():  # the API and tests call this in their own process
-        return _run_single_process(cfg)
+    with stop_on_signals(StopFlag()) as stop:  # the API and tests call this in their own process
+        return _run_single_process(cfg, stop)
 
 
-def _run_single_process(cfg: Config) -> int:
-    run_dir = cfg.run_dir
-    run_layout.logs(run_dir).mkdir(parents=True, exist_ok=True)
-    cfg.save(run_layout.config(run_dir))
+def _run_single_process(cfg: Config, stop: StopFlag) -> int:
+    run_dir = cfg.run_dir  # held by the launcher (`launch.run_directory`)
     # The log goes to a file, as each component's does in a distributed run; the terminal shows the display.
     logging.basicConfig(level=logging.INFO, filename=run_layout.single_process_log(run_dir), force=True,
                         format="%(asctime)s %(name)s %(levelname)s %(message)s", datefmt="%H:%M:%S")
     print(f"silcr train: run {cfg.run} in {run_dir} ({cfg.algo} on {cfg.env}, {cfg.actors} actor(s), "
           f"{cfg.total_steps} env steps, single process)", flush=True)
-    stop = StopFlag().install_signal_handlers()
     try:
         run = SingleProcessRun(cfg)
     except ResumeError as e:
@@ -182,7 +178,7 @@ def _run_single_process(cfg: Config) -> int:
         # Ctrl-C once `run` returns would leave half-written checkpoints behind the atomic renames: it
         # settles the learner before returning, and the rest finishes with Ctrl-C ignored.
         finished = run.run(stop, display)
-    signal.signal(signal.SIGINT, signal.SIG_IGN)
+    ignore_stop_signals()
     stale = run.close()
     if stale:
         print(stale_checkpoints_message(run_dir, stale), file=sys.stderr)

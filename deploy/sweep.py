@@ -42,9 +42,9 @@ from typing import Any
 from silcr.common import run_layout
 from silcr.common.commands import command, option_args
 from silcr.common.config import FIELDS, ConfigError, from_options
-from silcr.common.lifecycle import caller_signal_handlers, interrupt_on_ctrl_c
-from silcr.learner.progress import read_rows
+from silcr.common.lifecycle import caller_signal_handlers, ignore_stop_signals, stop_signals_interrupt
 from silcr.common.run_records import wall_seconds
+from silcr.learner.progress import read_rows
 
 # Set per cell by the sweep itself, so an experiment file may not set them.
 _SWEEP_OWNED = {"run", "runs_dir", "seed", "resume", "zenoh_listen", "config"}
@@ -227,11 +227,7 @@ def _run_sweep(exp: dict[str, Any], seeds: list[int], runs_dir: Path, parallel: 
                               f"checkpoints, or delete their directories to start them again")
     runs_dir.mkdir(parents=True, exist_ok=True)
 
-    def sigterm(signum: int, frame: object) -> None:  # `kill` takes the same clean path as Ctrl-C
-        raise KeyboardInterrupt
-
-    signal.signal(signal.SIGTERM, sigterm)
-    interrupt_on_ctrl_c()
+    stop_signals_interrupt()  # `kill` takes the same clean path as Ctrl-C
     running: list[_Running] = []
     failed: list[str] = []
     finished = len(cells) - len(todo)
@@ -340,8 +336,7 @@ def run_sweep_cli(args: argparse.Namespace, parser: argparse.ArgumentParser) -> 
         # The cells are stopped: a later signal has nothing left to stop, and one that came during the
         # interpreter's exit killed the sweep (exit -15, not 130) once the handlers were reset; ignored
         # handlers are not reset. (Here, not in run_sweep: an in-process caller gets its handlers back.)
-        signal.signal(signal.SIGINT, signal.SIG_IGN)
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        ignore_stop_signals()
     for line in lines:  # a dry run shows the plan and then everything that would stop it
         print(f"silcr sweep: error: {line}", file=sys.stderr)
     return 2 if problems else rc

@@ -25,7 +25,7 @@ from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.weights_channel import WeightsServer
 
-from .checkpoint import CheckpointError, LearnerCheckpoints
+from .checkpoint import LearnerCheckpoints
 from .evaluations import Evaluations
 from .row_ages import RowAges
 from .update import Update
@@ -39,29 +39,19 @@ class Bookkeeping:
 
     COUNTERS = ("updates", "policy_version", "env_steps")
 
-    def __init__(self, cfg: Config, spec: EnvSpec, update: Update, weights: WeightsServer) -> None:
+    def __init__(self, cfg: Config, spec: EnvSpec, update: Update, weights: WeightsServer,
+                 checkpoints: LearnerCheckpoints) -> None:
+        """Counters at zero; `Learner` restores them from the checkpoint (`restore`)."""
         self.cfg, self.spec = cfg, spec
         self.algo = algorithm(cfg.algo)
         self.update = update
         self.weights_server = weights
         self.incarnation = P.new_incarnation()
         self.updates = self.policy_version = self.env_steps = 0  # COUNTERS
-        self.checkpoints = LearnerCheckpoints(cfg.run_dir, cfg.resume)
-        self.resumed = self.checkpoints.resumed
-        payload = self.checkpoints.load()
-        if payload is not None:  # the networks first: a checkpoint that does not fit stops here, no file touched
-            try:
-                update.restore(payload, self.checkpoints.path)
-            except (ValueError, KeyError, RuntimeError) as e:  # other networks, another --algo, missing tensors
-                raise CheckpointError(f"{self.checkpoints.path} does not fit this run: {e}") from None
+        self.checkpoints = checkpoints
+        self.resumed = checkpoints.resumed
         self.evaluations = Evaluations(cfg, spec, cfg.run_dir, self.resumed)
         self.clock = UpdateClock()  # before `restore`: it keeps the run's time before this start
-        if payload is not None:
-            self.restore(payload["counters"])
-            log.info("resumed from %s: %d updates, policy version %d", self.checkpoints.path, self.updates,
-                     self.policy_version)
-        elif cfg.resume:
-            log.info("--resume: no checkpoint at %s yet; starting fresh", self.checkpoints.path)
         self.ages = RowAges()
         self.next_checkpoint = (self.updates // cfg.checkpoint_interval + 1) * cfg.checkpoint_interval
         self.buffer_meta: dict[str, Any] = {}  # the latest reply's description of the buffer (D_E's returns)
@@ -78,6 +68,7 @@ class Bookkeeping:
         self.clock.wall_before = float(counters.get("wall_time", 0.0))  # absent before silcr 0.6
         self.evaluations.restore(counters)
         self.checkpoints.restore(counters)
+        self.next_checkpoint = (self.updates // self.cfg.checkpoint_interval + 1) * self.cfg.checkpoint_interval
 
     def checkpoint(self) -> bool:
         """Write the learner checkpoint; a failure (a full disk, a directory made unwritable) is counted in

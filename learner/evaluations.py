@@ -19,8 +19,7 @@ from pathlib import Path
 from typing import Any
 
 from silcr.common import protocol as P
-from silcr.common import run_layout
-from silcr.common import seeds
+from silcr.common import run_layout, seeds
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.learner.model_file import write as write_model

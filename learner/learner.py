@@ -1,14 +1,17 @@
-"""The learner without the network: the update (`update.py`) and its bookkeeping (`bookkeeping.py`).
+"""The learner without the network: its parts wired once, and what it does with one buffer reply.
 
-`Learner.step(reply)` is what a learner does with one buffer reply: check it, train
-on its batches, count. Tests drive it directly; `silcr train --single-process`
-drives it with in-process clients, and `service.run_learner` over Zenoh.
+`Learner(cfg, spec, weights)` is the one place that builds a learner's parts (Acme's builder in
+spirit) and restores them from the run's checkpoint: the update (`update.py`: networks, optimisers,
+the gradient steps) and its bookkeeping (`bookkeeping.py`: counters, schedules, evaluations,
+checkpoints, stats). `step(reply)` checks a reply, trains on its batches and counts. The loops that
+drive a learner (`service.run_learner` over Zenoh, `deploy.single_process` in one process, tests)
+talk to the parts themselves: `learner.books.poll()`, `learner.update.sample_request()`.
 """
 
 from __future__ import annotations
 
+import logging
 import time
-from typing import Any
 
 from silcr.common import protocol as P
 from silcr.common.config import Config
@@ -16,13 +19,31 @@ from silcr.common.envs import EnvSpec
 from silcr.common.weights_channel import WeightsServer
 
 from .bookkeeping import Bookkeeping
+from .checkpoint import CheckpointError, LearnerCheckpoints
 from .update import Update
+
+log = logging.getLogger("learner")
 
 
 class Learner:
     def __init__(self, cfg: Config, spec: EnvSpec, weights: WeightsServer) -> None:
+        """The parts, restored from the run's checkpoint with --resume; CheckpointError (no file touched) when it
+        does not fit this run."""
         self.update = Update(cfg, spec)
-        self.books = Bookkeeping(cfg, spec, self.update, weights)
+        checkpoints = LearnerCheckpoints(cfg.run_dir, cfg.resume)
+        payload = checkpoints.load()
+        if payload is not None:  # the networks first: a checkpoint that does not fit stops here, no file touched
+            try:
+                self.update.restore(payload, checkpoints.path)
+            except (ValueError, KeyError, RuntimeError) as e:  # other networks, another --algo, missing tensors
+                raise CheckpointError(f"{checkpoints.path} does not fit this run: {e}") from None
+        self.books = Bookkeeping(cfg, spec, self.update, weights, checkpoints)
+        if payload is not None:
+            self.books.restore(payload["counters"])
+            log.info("resumed from %s: %d updates, policy version %d", checkpoints.path, self.books.updates,
+                     self.books.policy_version)
+        elif cfg.resume:
+            log.info("--resume: no checkpoint at %s yet; starting fresh", checkpoints.path)
 
     def step(self, reply: P.BatchReply) -> None:
         """Train on one `ok` reply (one update per batch), then publish weights and checkpoint when due."""
@@ -32,34 +53,3 @@ class Learner:
         t0 = time.monotonic()
         n = self.update.train(reply, self.books.updates)
         self.books.counted(n, time.monotonic() - t0)
-
-    # The rest is the bookkeeping's, named here for the loops that drive a learner.
-    def start(self) -> None:
-        self.books.start()
-
-    def see(self, meta: dict[str, Any]) -> None:
-        self.books.see(meta)
-
-    def poll(self) -> None:
-        self.books.poll()
-
-    def done(self, starved: bool) -> bool:
-        return self.books.done(starved)
-
-    def finish(self, finished: bool) -> bool:
-        return self.books.finish(finished)
-
-    def settle(self, finished: bool) -> bool:
-        return self.books.settle(finished)
-
-    def stats(self) -> dict[str, Any]:
-        return self.books.stats()
-
-    def record_scalars(self, stats: dict[str, Any]) -> None:
-        self.books.record_scalars(stats)
-
-    def sample_request(self) -> P.SampleRequest:
-        return self.update.sample_request()
-
-    def checkpoint(self) -> None:
-        self.books.checkpoint()

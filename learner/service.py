@@ -37,10 +37,10 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
         log.info("learner for run %s on %s: %s, networks %s, batch %d, %d env steps",
                  cfg.run, lrn.update.device, cfg.algo, cfg.hidden, cfg.batch_size, cfg.total_steps)
         # The requests name the learner's incarnation (as its weights do): the buffer serves only a live learner.
-        request = dataclasses.replace(lrn.sample_request(), learner=lrn.books.incarnation)
+        request = dataclasses.replace(lrn.update.sample_request(), learner=lrn.books.incarnation)
         stream = ZenohBatchStream(role.session, role.keys, request, cfg.requests_in_flight, stop,
                                   updates_before=lrn.books.updates)
-        lrn.start()
+        lrn.books.start()
         stream.wait_for_buffer()
         finished = False
         mismatch: P.BufferMismatch | None = None
@@ -49,20 +49,20 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                 if batch is not None:
                     lrn.step(batch)
                 else:
-                    lrn.see(stream.last_meta)
+                    lrn.books.see(stream.last_meta)
             except P.BufferMismatch as e:
                 log.error("%s", e)
                 mismatch = e
                 break
-            lrn.poll()
+            lrn.books.poll()
             if role.stats_due.due():
-                stats = lrn.stats() | stream.stats()
+                stats = lrn.books.stats() | stream.stats()
                 role.stats.put(stats)
-                lrn.record_scalars(stats)
-            if lrn.done(starved=stream.rate_limited):
+                lrn.books.record_scalars(stats)
+            if lrn.books.done(starved=stream.rate_limited):
                 finished = True
                 break
-        written = lrn.finish(finished)
+        written = lrn.books.finish(finished)
         books = lrn.books
         role.stats.put({"time": time.time(), "updates": books.updates, "policy_version": books.policy_version,
                         "env_steps": books.env_steps, "last_eval_return": books.evaluations.last_eval_return, "finished": finished})

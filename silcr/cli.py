@@ -287,13 +287,6 @@ def _main(argv: list[str] | None) -> int:
     try:
         cfg = resolve(args, role)
         preflight.check(cfg, role)
-        if role == "learner" and cfg.device == "cuda":
-            from silcr.learner.update import pick_device
-
-            try:
-                pick_device("cuda")
-            except ValueError as e:
-                raise ConfigError("--device", str(e).removeprefix("--device cuda: ")) from None
     except ConfigError as e:
         subs[role].error(str(e))
 

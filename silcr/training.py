@@ -17,8 +17,6 @@ from __future__ import annotations
 import contextlib
 import io
 import logging
-import signal
-import threading
 from typing import Any, Callable
 
 from silcr.common import protocol as P
@@ -34,17 +32,17 @@ RowCallback = Callable[[dict[str, Any]], bool]
 
 class InProcessTraining:
     def __init__(self, cfg: Config) -> None:
-        from silcr.common.run_lock import RunInUse, hold
+        from silcr.common.run_lock import RunInUse
+        from silcr.deploy.launch import run_directory
         from silcr.deploy.single_process import ResumeError, SingleProcessRun
 
         self.cfg = cfg
         self._held = contextlib.ExitStack()
         try:
-            self._held.enter_context(hold(cfg.run_dir))
+            self._held.enter_context(run_directory(cfg))  # the launcher's, as `silcr train` holds it
         except RunInUse as e:
             raise RuntimeError(str(e)) from None
         try:
-            run_layout.logs(cfg.run_dir).mkdir(parents=True, exist_ok=True)
             with self.component_logs():
                 self.run = SingleProcessRun(cfg)
         except ResumeError as e:
@@ -63,27 +61,15 @@ class InProcessTraining:
 
     def learn(self, on_row: RowCallback | None, progress_bar: bool) -> None:
         """Train to `cfg.total_steps`; KeyboardInterrupt after a clean stop if Ctrl-C came."""
-        from silcr.common.lifecycle import StopFlag
+        from silcr.common.lifecycle import StopFlag, stop_on_signals
         from silcr.deploy.console import TrainingDisplay
 
         self.cfg.save(run_layout.config(self.cfg.run_dir))
-        stop = StopFlag()
-        interrupted = threading.Event()
-
-        def on_sigint(signum: int, frame: object) -> None:
-            interrupted.set()
-            stop.set("SIGINT")
-
-        main = threading.current_thread() is threading.main_thread()
-        previous = signal.signal(signal.SIGINT, on_sigint) if main else None
-        try:
+        with stop_on_signals(StopFlag()) as stop:  # Ctrl-C or SIGTERM: a clean stop, then KeyboardInterrupt
             display = TrainingDisplay(self.cfg.total_steps) if progress_bar else contextlib.nullcontext()
             with self.component_logs(), display:
                 self.run.run(stop, display if progress_bar else None, on_row)
-        finally:
-            if main:
-                signal.signal(signal.SIGINT, previous)
-        if interrupted.is_set():
+        if stop.is_set():
             raise KeyboardInterrupt
 
     def checkpoint(self) -> None:

@@ -111,3 +111,24 @@ def test_a_model_moves_between_gpu_and_cpu_with_its_training_state(tmp_path, tra
     assert moved.num_timesteps >= 1500
     assert np.all(np.isfinite(moved.predict(obs, deterministic=True)[0]))
     moved.close()
+
+
+@pytest.mark.skipif(torch.cuda.is_available(), reason="checks the refusal on a machine without CUDA")
+@pytest.mark.parametrize("role", ["train", "learner"])
+def test_device_cuda_without_a_gpu_is_refused_by_every_way_of_training(role, tmp_path):
+    """`silcr train --device cuda` and `silcr learner --device cuda` exit 2 with one line and write nothing; the
+    Python API raises ValueError naming `device`: one check (deploy/preflight.py) for every launcher (issue 62)."""
+    import subprocess
+    import sys
+
+    r = subprocess.run([sys.executable, "-m", "silcr.cli", role, "--env", "InvertedPendulum-v5", "--device", "cuda",
+                        "--runs-dir", str(tmp_path / "runs"), "--run", "c"], capture_output=True, text=True,
+                       timeout=120)
+    assert r.returncode == 2 and "Traceback" not in r.stderr, r.stderr
+    assert r.stderr.strip().splitlines()[-1].endswith("--device: CUDA is not available on this machine"), r.stderr
+    assert not (tmp_path / "runs").exists()
+    from silcr import SILCR
+
+    with pytest.raises(ValueError, match="^device: CUDA is not available"):
+        SILCR("InvertedPendulum-v5", device="cuda", runs_dir=tmp_path / "api")
+    assert not (tmp_path / "api").exists()

@@ -156,7 +156,7 @@ def test_r_d_is_recomputed_for_every_batch_from_the_current_discriminator(tmp_pa
     assert not torch.equal(seen[0], seen[-1])  # r_D followed the discriminator
     assert lrn.update.gasil.updates == 5
     np.testing.assert_array_equal(replay.fifo.storage.rewards, stored)  # never stored
-    stats = lrn.stats()
+    stats = lrn.books.stats()
     for k in ("disc_loss", "disc_acc_expert", "disc_acc_policy", "gasil_reward_mean"):
         assert isinstance(stats[k], float), k
     assert stats["gasil_reward_mean"] == pytest.approx(float(lrn.update.gasil.reward(obs, actions).mean()), abs=1e-6)
@@ -192,7 +192,7 @@ def test_a_resumed_gasil_learner_continues_bit_identically(tmp_path):
     a = Learner(cfg, EnvSpec.of(ENV), InProcessWeights())
     for b in batches[:3]:
         a.step(b)
-    a.checkpoint()
+    a.books.checkpoint()
     b = Learner(Config(**cfg.to_dict() | {"resume": True}), EnvSpec.of(ENV), InProcessWeights())
     assert b.books.resumed and b.books.updates == a.books.updates == 6 and b.update.gasil.updates == 6
     for lrn in (a, b):
@@ -202,12 +202,12 @@ def test_a_resumed_gasil_learner_continues_bit_identically(tmp_path):
     assert a.books.updates == b.books.updates == 12
     for x, y in zip(_all_state(a), _all_state(b), strict=True):
         assert torch.equal(x, y)
-    assert a.stats()["disc_loss"] == b.stats()["disc_loss"]
+    assert a.books.stats()["disc_loss"] == b.books.stats()["disc_loss"]
 
 
 def test_a_checkpoint_without_a_discriminator_is_refused(tmp_path):
     sac_cfg = Config(**_gasil_cfg(tmp_path).to_dict() | {"algo": "sac"})
-    Learner(sac_cfg, EnvSpec.of(ENV), InProcessWeights()).checkpoint()
+    Learner(sac_cfg, EnvSpec.of(ENV), InProcessWeights()).books.checkpoint()
     with pytest.raises(CheckpointError, match="does not fit this run: .*no GASIL discriminator"):
         Learner(Config(**_gasil_cfg(tmp_path).to_dict() | {"resume": True}), EnvSpec.of(ENV), InProcessWeights())
 

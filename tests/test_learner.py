@@ -44,20 +44,20 @@ def test_step_keeps_the_schedules(tmp_path):
     replay = ReplayState(cfg, EnvSpec.of(ENV))
     for i in range(6):
         replay.store(make_episode(10, ret=float(i), seq=i))
-    lrn.start()
+    lrn.books.start()
     assert server.versions == [0] and lrn.books.evaluations.evals == 1  # the untrained policy's weights and evaluation
     for n in (2, 2, 2, 1):
         lrn.step(_batch(replay, n))
-        lrn.poll()
+        lrn.books.poll()
     assert lrn.books.updates == 7 and lrn.books.env_steps == 60
     assert server.versions == [0, 1, 2]  # a new version every 3 updates (after 3 and 6)
     assert load_checkpoint(lrn.books.checkpoints.path)["counters"]["updates"] == 6  # every 5 updates, at the step crossing it
     assert lrn.books.evaluations.evals == 2  # 60 env steps passed the evaluation at 40
     assert lrn.books.ages.policy_lag and lrn.books.ages.expert_age  # both halves of a SILCR batch measured apart
-    assert not lrn.done(starved=False)
-    lrn.see({"env_steps": 100})
-    assert not lrn.done(starved=False) and lrn.done(starved=True)  # 7 of the 90 updates due: done only if starved
-    lrn.finish(finished=True)
+    assert not lrn.books.done(starved=False)
+    lrn.books.see({"env_steps": 100})
+    assert not lrn.books.done(starved=False) and lrn.books.done(starved=True)  # 7 of the 90 updates due: done only if starved
+    lrn.books.finish(finished=True)
     rows = list(csv.DictReader(open(tmp_path / "lt" / "progress.csv")))
     # evaluations: the untrained policy, the first poll past 40 env steps (after 2 updates), the final one
     assert [int(r["updates"]) for r in rows] == [0, 2, 7]
@@ -77,4 +77,4 @@ def test_policy_lag_counts_only_online_rows(tmp_path):
     versions[online:] = 1  # D_E rows: old expert episodes, 9 versions behind
     lrn.step(batch)
     assert lrn.books.ages.policy_lag[-1] == 2.0 and lrn.books.ages.expert_age[-1] == 9.0
-    assert np.isfinite(lrn.stats()["policy_lag_mean"])
+    assert np.isfinite(lrn.books.stats()["policy_lag_mean"])
