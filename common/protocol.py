@@ -611,14 +611,13 @@ class BufferMismatch(RuntimeError):
 @dataclass(frozen=True)
 class BatchHeader:
     """What a reply's `meta` agrees between the buffer and the learner, typed (SB3's `ReplayBufferSamples` in
-    spirit): the buffer's algorithm and transitions received, and the layout of an `ok` reply's rows.
+    spirit): the buffer's algorithm and the layout of an `ok` reply's rows.
 
     The layout is worked out here only: `batches` consecutive batches of `batch_size` rows, each batch's
     first `online_rows` rows from D_O and the rest, when the algorithm mixes, from D_E. `check` is the one
     test that a buffer's replies suit a learner."""
 
     algo: str | None  # None: a buffer from before 0.4, which did not name its algorithm
-    env_steps: int = 0
     batches: int = 0  # 0 in a not_ready reply
     batch_size: int = 0
     online_rows: int = 0
@@ -633,7 +632,7 @@ class BatchHeader:
     @classmethod
     def of(cls, meta: Mapping[str, Any], action_kind: str | None = None, disc: bool = False) -> "BatchHeader":
         size = int(meta.get("batch_size", 0))
-        return cls(meta.get("algo"), int(meta.get("env_steps", 0)), int(meta.get("batches", 0)), size,
+        return cls(meta.get("algo"), int(meta.get("batches", 0)), size,
                    int(meta.get("online_rows", size)), int(meta.get("disc_batch_size", 0)) if disc else 0,
                    action_kind)
 
