@@ -20,6 +20,7 @@ import numpy as np
 from silcr.common import protocol as P
 from silcr.common import seeds
 from silcr.common.config import Config
+from silcr.common.control_channel import finished_reason
 from silcr.common.envs import EnvSpec, make_env
 from silcr.common.episode_channel import EpisodeWriter, ZenohEpisodeWriter
 from silcr.common.lifecycle import StopFlag
@@ -35,6 +36,8 @@ HOST = socket.gethostname()
 # A paused actor wakes this often (unless the buffer lets it go on first) to take newer weights
 # and publish its stats.
 PAUSED_POLL_S = 0.25
+#: How long a stopping actor waits for the buffer to confirm its last episodes (none when the run finished).
+CLOSE_WAIT_S = 5.0
 
 
 class _Rollout:
@@ -62,14 +65,14 @@ class Actor:
     """`envs_per_actor` envs stepped together with one batched forward pass of the current policy."""
 
     def __init__(self, cfg: Config, spec: EnvSpec, actor_id: int, writer: EpisodeWriter,
-                 weights: WeightsClient[Policy]) -> None:
+                 weights: WeightsClient[Policy], incarnation: int | None = None) -> None:
         self.actor_id = actor_id
         self.seed = seeds.actor(cfg.seed, actor_id)
         self.spec = spec
         self.writer = writer
         self.weights = weights
         self.rng = np.random.default_rng(self.seed)
-        self.incarnation = P.new_incarnation()
+        self.incarnation = P.new_incarnation() if incarnation is None else incarnation
         self.envs = [make_env(cfg.env, cfg.actor_reward) for _ in range(cfg.envs_per_actor)]
         self.rollouts = []
         for j, env in enumerate(self.envs):
@@ -121,12 +124,14 @@ class Actor:
 def run_actor(cfg: Config, stop: StopFlag) -> int:
     seed = seeds.actor(cfg.seed, cfg.actor_id)
     with role_session(cfg, stop, "actor", cfg.actor_id) as role:
-        writer = ZenohEpisodeWriter(role.session, role.keys, stop)
+        incarnation = P.new_incarnation()
+        writer = ZenohEpisodeWriter(role.session, role.keys, stop, cfg.actor_id, incarnation,
+                                    int(cfg.actor_outbox_mb * 2**20))
         weights = ZenohWeightsClient(role.session, role.keys, policy_factory(role.spec),
                                      random_initial_weights(cfg, role.spec, seed), cfg.weights_wait, stop)
         # Logs when the buffer leaves and comes back (its stats say it too: `waiting_for_buffer`).
         Presence.buffer(role.session, role.keys, stop)
-        actor = Actor(cfg, role.spec, cfg.actor_id, writer, weights)
+        actor = Actor(cfg, role.spec, cfg.actor_id, writer, weights, incarnation)
         log.info("actor %d on %s with %d env(s), seed %d, policy version %d", cfg.actor_id, cfg.env, len(actor.envs),
                  seed, weights.version)
         paused_s = 0.0
@@ -136,8 +141,13 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
             # before stepping instead, awake (stats, weights) rather than blocked in a write.
             waiting = not writer.buffer_listening()
             paused = writer.paused()
+            full = writer.outbox_full()
             if waiting:
                 writer.wait_for_buffer(PAUSED_POLL_S)
+            elif full:
+                # Episodes the buffer has not confirmed fill the outbox (a cut link, a slow buffer):
+                # wait for its acks, sending again what is due, rather than step on and lose some.
+                writer.wait_for_room(PAUSED_POLL_S)
             elif paused:
                 # Back at once when the buffer says so; otherwise awake every PAUSED_POLL_S
                 # to take newer weights and publish stats.
@@ -146,13 +156,17 @@ def run_actor(cfg: Config, stop: StopFlag) -> int:
                 paused_s += time.monotonic() - t0
             elif not actor.step():
                 break
-            if waiting or paused or actor.steps - last_poll >= cfg.weights_poll_steps:
+            else:
+                writer.pump()  # what an ack asked for again, or what timed out
+            if waiting or paused or full or actor.steps - last_poll >= cfg.weights_poll_steps:
                 # Waiting actors keep polling, so they go on with the newest policy.
                 last_poll = actor.steps
                 weights.update()
             if role.stats_due.due():
                 role.stats.put({"time": time.time(), "paused": paused, "paused_s": paused_s,
                                 "waiting_for_buffer": waiting} | actor.stats())
+        # What the buffer has not confirmed yet gets a moment; the rest is counted as not written.
+        writer.close(timeout=0.0 if stop.reason == finished_reason() else CLOSE_WAIT_S)
         written = writer.stats()
         log.info("actor %d on %s stopping (%s): %d episodes, %d steps; %d episodes written to the buffer, %d not",
                  cfg.actor_id, HOST, stop.reason, actor.episodes, actor.steps, written["episodes_written"],

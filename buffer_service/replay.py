@@ -76,6 +76,9 @@ class ReplayState:
     def ingest(self, payload: bytes) -> P.Episode:
         return self.intake.ingest(payload)
 
+    def decode(self, payload: bytes) -> P.Episode:
+        return self.intake.decode(payload)
+
     def reject(self, e: P.ProtocolError) -> None:
         self.intake.reject(e)
 

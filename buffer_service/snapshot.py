@@ -23,11 +23,13 @@ Files of version 1 (silcr 0.1, which wrote the tables' fields one by one) and ve
 
 from __future__ import annotations
 
+import functools
 import logging
 import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
+from collections.abc import Callable
 from typing import Any, BinaryIO, Protocol
 
 import msgpack
@@ -37,6 +39,7 @@ from silcr.common.algorithms import algorithm
 from silcr.common.atomic_file import write_atomic
 from silcr.common.schedule import Every
 
+from .episode_log import EpisodeLog
 from .expert_heap import AdmissionMismatch
 
 log = logging.getLogger("buffer")
@@ -266,15 +269,17 @@ class BackgroundWriter:
     def busy(self) -> bool:
         return self._thread is not None and self._thread.is_alive()
 
-    def submit(self, snap: Snapshot) -> bool:
+    def submit(self, snap: Snapshot, on_written: Callable[[], None] | None = None) -> bool:
+        """Write `snap` in the background, then call `on_written` (in the writer's thread) if it is on disk."""
         if self.busy():
             self.skipped += 1
             return False
-        self._thread = threading.Thread(target=self._write, args=(snap,), name="buffer-checkpoint", daemon=True)
+        self._thread = threading.Thread(target=self._write, args=(snap, on_written), name="buffer-checkpoint",
+                                        daemon=True)
         self._thread.start()
         return True
 
-    def _write(self, snap: Snapshot) -> None:
+    def _write(self, snap: Snapshot, on_written: Callable[[], None] | None = None) -> None:
         try:
             write(self.path, snap)
         except OSError as e:
@@ -284,6 +289,8 @@ class BackgroundWriter:
         self.written += 1
         self.last_transitions = snap.transitions
         self.last_written_at = time.time()
+        if on_written is not None:
+            on_written()
 
     def join(self) -> None:
         if self._thread is not None:
@@ -294,10 +301,12 @@ class PeriodicCheckpoints:
     """The buffer's checkpoint schedule, the same for both launchers: a snapshot every `interval`
     seconds written in the background (none if `interval` is 0), and a last one on the way out,
     so that a clean stop (Ctrl-C, the end of the run) loses nothing. The named `parts` (the
-    inbox's counters, say) ride along; the writer's own counters always do."""
+    inbox's counters, say) ride along; the writer's own counters always do. With an `episode_log`,
+    each checkpoint starts a new segment of it when taken and drops the older ones once written."""
 
-    def __init__(self, path: Path, interval: float, **parts: Part) -> None:
+    def __init__(self, path: Path, interval: float, episode_log: EpisodeLog | None = None, **parts: Part) -> None:
         self.writer = BackgroundWriter(path)
+        self.episode_log = episode_log
         self.parts: dict[str, Part] = {**parts, "writer": self.writer}
         self._every = Every(interval, first_now=False, never_if_zero=True)
         self._restored: tuple[int, ...] | None = None
@@ -311,8 +320,16 @@ class PeriodicCheckpoints:
             self._restored = replay.activity()
 
     def maybe(self, replay: Checkpointed, now: float | None = None) -> None:
-        if self._every.due(now):
-            self.writer.submit(take(replay, **self.parts))
+        if not self._every.due(now):
+            return
+        if self.writer.busy():
+            self.writer.skipped += 1
+            return
+        on_written = None
+        if self.episode_log is not None:
+            segment = self.episode_log.rotate()
+            on_written = functools.partial(self.episode_log.checkpoint_written, segment)
+        self.writer.submit(take(replay, **self.parts), on_written)
 
     def final(self, replay: Checkpointed) -> bool:
         """The last checkpoint, on the way out; whether the file on disk now holds this state."""
@@ -321,6 +338,8 @@ class PeriodicCheckpoints:
             # Nothing came in since the checkpoint it restored (another component could not start,
             # say): leave that file as it is rather than rewrite it.
             log.info("nothing changed since the checkpoint it resumed from; %s left as it is", self.writer.path)
+            if self.episode_log is not None:
+                self.episode_log.close(checkpointed=False)  # what it replayed is still only in its segments
             return True
         t0 = time.monotonic()
         written = True
@@ -329,9 +348,11 @@ class PeriodicCheckpoints:
             log.info("checkpoint of %d transitions written to %s in %.1fs", replay.transitions_received,
                      self.writer.path, time.monotonic() - t0)
         except OSError as e:
-            log.error("the final checkpoint could not be written (%s): %s is stale; --resume would continue from it",
-                      e, self.writer.path)
+            log.error("the final checkpoint could not be written (%s): %s is stale; --resume would continue from it%s",
+                      e, self.writer.path, " and the episode log" if self.episode_log is not None else "")
             written = False
+        if self.episode_log is not None:
+            self.episode_log.close(checkpointed=written)
         if self.writer.failed:
             log.error("%d periodic checkpoints failed; last error: %s", self.writer.failed, self.writer.last_error)
         return written

@@ -100,6 +100,10 @@ class Config:
                             "they are ranked and evicted like the agent's own episodes")
     max_episode_bytes: int = _opt(DEFAULT_MAX_EPISODE_BYTES, {"train", "buffer"}, "largest episode message accepted")
     buffer_checkpoint_interval: float = _opt(300.0, {"train", "buffer"}, "seconds between buffer checkpoints (D_O, D_E, counters) in <run dir>/checkpoints/buffer.ckpt; 0: only at shutdown")
+    no_episode_log: bool = _opt(False, {"train", "buffer"}, "acknowledge episodes once stored in memory instead of once "
+                                "in the episode log (<run dir>/checkpoints/episode-log/, replayed after a crash): a "
+                                "killed buffer then loses what came since its last checkpoint. Also off when "
+                                "--buffer-checkpoint-interval is 0 (checkpoints are what compact the log)")
     # --- learner ---------------------------------------------------------------
     hidden: list[int] = _opt([800, 400], {"train", "learner", "actor"}, "hidden layer sizes of actor and critics (Table I: 800 400)", nargs="+")
     lr: float = _opt(3e-4, {"train", "learner"}, "Adam learning rate for actor, critics and alpha")
@@ -181,6 +185,9 @@ class Config:
     actor_id: int = _opt(0, {"actor"}, "this actor's id (also its seed offset); -1: a random id, for replicas that share one command (docker compose --scale)")
     envs_per_actor: int = _opt(1, {"train", "actor"}, "environments stepped by each actor with one batched forward pass")
     weights_poll_steps: int = _opt(50, {"train", "actor"}, "check for new weights every N steps")
+    actor_outbox_mb: float = _opt(64.0, {"train", "actor"}, "MB of finished episodes an actor keeps until the buffer "
+                                  "confirms them (sent again after a cut link or a buffer restart); a full outbox "
+                                  "pauses the actor")
     weights_wait: float = _opt(15.0, {"train", "actor"}, "seconds an actor waits at start for the learner's weights before acting with its own random policy")
     # --- stats -----------------------------------------------------------------
     stats_interval: float = _opt(1.0, ALL, "seconds between stats messages")
@@ -380,7 +387,7 @@ _AT_LEAST = {name: 1 for name in ("online_capacity", "expert_capacity", "total_s
     "actor_id": -1, "torch_threads": 0, "bc_weight": 0, "max_restarts": 0, "grad_clip": 0, "gasil_alpha": 0, "disc_grad_penalty": 0, "weights_fanout_mb_s": 0,
     "buffer_checkpoint_interval": 0}
 _AT_MOST = {"batches_per_request": 64}
-_ABOVE_ZERO = ("samples_per_insert", "lr", "init_alpha", "disc_lr", "stats_interval")
+_ABOVE_ZERO = ("samples_per_insert", "lr", "init_alpha", "disc_lr", "stats_interval", "actor_outbox_mb")
 _ZERO_TO_ONE = ("gamma", "tau", "target_entropy_scale")  # (0, 1]
 _LAYERS = ("hidden", "disc_hidden")
 

@@ -22,10 +22,10 @@ OPTION_GROUPS: dict[str, tuple[str, ...]] = {
                 "max_episode_bytes"),
     "rate control": ("learning_starts", "samples_per_insert", "spi_tolerance", "no_throttle", "batches_per_request",
                      "requests_in_flight"),
-    "actors": ("actors", "actor_id", "envs_per_actor", "weights_poll_steps", "weights_wait"),
+    "actors": ("actors", "actor_id", "envs_per_actor", "weights_poll_steps", "weights_wait", "actor_outbox_mb"),
     "evaluation": ("eval_interval", "eval_episodes", "final_eval_episodes", "eval_stochastic"),
     "Zenoh": ("connect", "listen", "zenoh_mode", "actor_zenoh_mode", "zenoh_config", "zenoh_listen"),
-    "checkpoints": ("resume", "checkpoint_interval", "buffer_checkpoint_interval"),
+    "checkpoints": ("resume", "checkpoint_interval", "buffer_checkpoint_interval", "no_episode_log"),
     "stats and health": ("stats_interval", "health_file"),
 }
 _GROUP_OF = {name: group for group, names in OPTION_GROUPS.items() for name in names}

@@ -6,8 +6,8 @@ and for tools written in other languages.
 
 Every message kind is a dataclass with `encode()` and a `decode(payload)` class
 method that returns it or raises `ProtocolError` naming the problem: `Episode`,
-`Weights`, `SampleRequest`, `BatchReply`, `ThrottleNotice`, `ShutdownNotice` and
-`Stats`. All binary messages are msgpack maps carrying `"v": SCHEMA_VERSION` and a
+`EpisodeAck`, `Weights`, `SampleRequest`, `BatchReply`, `ThrottleNotice`, `ShutdownNotice`
+and `Stats`. All binary messages are msgpack maps carrying `"v": SCHEMA_VERSION` and a
 `kind`. Arrays travel as `[dtype, shape, raw_bytes]` (little-endian numpy dtype
 string, list of ints, C-contiguous bytes) so that decoding is a zero-copy
 `np.frombuffer`. Stats are JSON (UTF-8) so that any Zenoh client can read them
@@ -100,6 +100,10 @@ class Keys:
     def episodes(self) -> str:
         """actor -> buffer: one finished episode per put (BLOCK, DATA)."""
         return f"{self.prefix}/episodes"
+
+    def episode_acks(self, actor_id: int) -> str:
+        """buffer -> one actor: which of its episodes the buffer holds durably (`EpisodeAck`, BLOCK)."""
+        return f"{self.prefix}/episodes/ack/{actor_id}"
 
     @property
     def weights(self) -> str:
@@ -302,6 +306,9 @@ class Episode:
     rewards: np.ndarray
     #: random id of the actor process that sent it: a restarted actor starts `seq` again
     incarnation: int = 0
+    #: the oldest of its episodes the actor still holds unconfirmed (it can send any from there on again);
+    #: None from actors before 0.9, which hold nothing: the buffer takes it as `seq`
+    resend_from: int | None = None
 
     @property
     def length(self) -> int:
@@ -327,7 +334,7 @@ class Episode:
             "obs": pack_array(np.asarray(self.obs, dtype="<f4")),
             "actions": pack_array(np.asarray(self.actions, dtype=ACTION_WIRE[kind])),
             "rewards": pack_array(np.asarray(self.rewards, dtype="<f4")),
-        })
+        } | ({} if self.resend_from is None else {"resend_from": int(self.resend_from)}))
 
     @classmethod
     def decode(cls, payload: bytes, limits: EpisodeLimits) -> "Episode":
@@ -352,7 +359,10 @@ class Episode:
             unpack_array(_get(msg, "actions", (list, tuple)), "actions", ACTION_WIRE[kind]),
             unpack_array(_get(msg, "rewards", (list, tuple)), "rewards", "<f4"),
             incarnation,
+            _int(msg, "resend_from", 0) if "resend_from" in msg else None,
         )
+        if ep.resend_from is not None and ep.resend_from > ep.seq:
+            raise ProtocolError("out_of_range", f"resend_from {ep.resend_from} is after the episode's own seq {ep.seq}")
         if ep.actions.ndim == 2 and ep.actions.shape[0] != length:
             raise ProtocolError("length_mismatch", f"length {length} but {ep.actions.shape[0]} actions")
         validate_episode(ep, limits)
@@ -404,6 +414,30 @@ def validate_episode(ep: Episode, limits: EpisodeLimits) -> None:
         raise ProtocolError("return_mismatch", f"episode_return {ep.episode_return} differs from the sum of rewards {total}")
     if not (ep.terminated or ep.truncated):
         raise ProtocolError("not_finished", "episode is neither terminated nor truncated")
+
+
+@dataclass(frozen=True)
+class EpisodeAck:
+    """The buffer to one actor (incarnation): every episode of it up to `confirmed` is held durably
+    (-1: none yet). `resend_from` asks for episodes again from that seq on: the buffer refused one
+    that came after a gap (the ones before it were lost on the way). Acks are cumulative, so a
+    later one repairs any that went missing."""
+
+    actor_id: int
+    incarnation: int
+    confirmed: int
+    resend_from: int | None = None
+
+    def encode(self) -> bytes:
+        return _pack({"kind": "episode_ack", "actor_id": int(self.actor_id), "incarnation": int(self.incarnation),
+                      "confirmed": int(self.confirmed)}
+                     | ({} if self.resend_from is None else {"resend_from": int(self.resend_from)}))
+
+    @classmethod
+    def decode(cls, payload: bytes) -> "EpisodeAck":
+        msg = _unpack_kind(payload, "episode_ack", max_bytes=65536)
+        return cls(_int(msg, "actor_id", 0), _int(msg, "incarnation", 0), _int(msg, "confirmed", -1),
+                   _int(msg, "resend_from", 0) if "resend_from" in msg else None)
 
 
 # ---------------------------------------------------------------------------

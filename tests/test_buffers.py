@@ -279,8 +279,44 @@ def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
     restarted.incarnation = 8
     state.ingest(restarted.encode())
     assert state.intake.episodes_received == 2 and len(state.fifo) == 10
-    assert state.intake.rejections == {"duplicate": 1}
+    # An episode sent again is not a rejection (an actor resends what it has no ack for): counted on its own.
+    assert state.intake.rejections == {} and state.stats()["episodes_duplicate"] == 1
     assert state.intake.episodes_missing == 0
+
+
+def test_an_actor_that_holds_its_episodes_gets_them_stored_in_order_and_none_counted_missing():
+    """Issue 63: an episode after a gap is refused and its sender asked again from the gap (it still holds
+    them, `resend_from`); only what a sender no longer holds is missing."""
+    from silcr.buffer_service.replay import ReplayState
+    from silcr.common import protocol as P
+    from silcr.common.config import Config
+    from silcr.common.envs import EnvSpec
+
+    state = ReplayState(Config(run="t", env="InvertedPendulum-v5"), EnvSpec.of("InvertedPendulum-v5"))
+
+    def send(seq, held_from):
+        ep = make_episode(3, ret=float(seq), seq=seq)
+        ep.incarnation, ep.resend_from = 9, held_from
+        state.store(P.Episode.decode(ep.encode(), state.limits))
+
+    send(0, 0)
+    send(1, 1)
+    with pytest.raises(P.ProtocolError) as info:
+        send(4, 2)  # 2 and 3 were lost on the way; the actor still holds them
+    assert info.value.reason == "out_of_order" and "asked for 2" in str(info.value)
+    probe = make_episode(3, seq=4)
+    probe.incarnation, probe.resend_from = 9, 2
+    assert state.intake.expected(probe) == 2 and state.intake.last_seq[(0, 9)] == 1
+    for seq in (2, 3, 4):
+        send(seq, 2)
+    send(7, 7)  # the actor gave up 5 and 6 (it stopped with them unconfirmed, say): missing for good
+    assert [e.seq for e in state.fifo.episodes()] == [0, 1, 2, 3, 4, 7]
+    assert state.intake.episodes_missing == 2
+    assert state.stats()["episodes_out_of_order"] == 1 and state.intake.rejections == {}
+    with pytest.raises(P.ProtocolError, match="after the episode's own seq"):
+        bad = make_episode(3, seq=8)
+        bad.resend_from = 9
+        P.Episode.decode(bad.encode(), state.limits)
 
 
 def test_gaps_in_an_actors_sequence_numbers_are_counted_as_missing_episodes():

@@ -143,7 +143,7 @@ def test_a_paused_writer_sleeps_until_the_buffer_lets_it_go_on():
     with open_session(router_config([endpoint])), \
             open_session(session_config([endpoint], mode="client")) as actor_side, \
             open_session(session_config([endpoint], mode="client")) as buffer_side:
-        writer = ZenohEpisodeWriter(actor_side, keys, StopFlag())
+        writer = ZenohEpisodeWriter(actor_side, keys, StopFlag(), actor_id=0, incarnation=1)
         throttle = Throttle(buffer_side, keys)
         assert writer.wait_unpaused(0.0)  # not paused before any notice
         wait_for(lambda: throttle._pub.matching_status.matching, 20, "the actor's subscription")
