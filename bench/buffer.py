@@ -17,6 +17,7 @@ import torch
 import zenoh
 
 from silcr.buffer_service.batches import compose_batches
+from silcr.buffer_service.episode_log import EpisodeLog
 from silcr.buffer_service.replay import ReplayState
 from silcr.common import protocol as P
 from silcr.common.config import Config
@@ -80,21 +81,34 @@ def preallocated_bytes(spec: EnvSpec, online: int, expert: int) -> int:
 
 def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
     results: dict[str, Any] = {}
-    rows = []
+    rows, log_rows = [], []
     for name, env_id in TASKS.items():
         spec = EnvSpec.of(env_id)
         demand = learner_demand(spec.obs_dim, spec.act_dim, 3 if quick else 10)
         # in-process
         cfg = Config(run="bench", env=env_id, learning_starts=1000, spi_tolerance=1e9)
         payloads = _episodes(spec, 10 if quick else 50, 1000)
-        timings = []
-        for _ in range(5):  # median of repeats: the first can meet torch's OpenMP threads still spinning
+        timings, logged = [], []
+        for i in range(5):  # median of repeats: the first can meet torch's OpenMP threads still spinning
             state = ReplayState(cfg, spec)
             t0 = time.perf_counter()
             for p in payloads:
                 state.ingest(p)
             timings.append(time.perf_counter() - t0)
+            # The same with the episode log (issue 63): each episode appended and handed to the operating
+            # system before the next, the most a buffer flushes (it flushes once per burst of arrivals).
+            state = ReplayState(cfg, spec)
+            log = EpisodeLog(out_dir / f"episode-log-{name}-{i}")
+            t0 = time.perf_counter()
+            for p in payloads:
+                state.ingest(p)
+                log.append(p)
+                log.flush()
+            logged.append(time.perf_counter() - t0)
+            log.close(checkpointed=True)
         inserts = 1000 * len(payloads) / float(np.median(timings))
+        inserts_logged = 1000 * len(payloads) / float(np.median(logged))
+        log_bytes_per_transition = (sum(map(len, payloads)) + 8 * len(payloads)) / (1000 * len(payloads))
         req = P.SampleRequest(1, 128).encode()
         batches = rate(lambda: state.answer(req).encode(), 50 if quick else 300)
         # The gather alone at 32 batches per request: what a GPU learner's data path could draw.
@@ -102,34 +116,45 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
                                                    spec.act_dim), 10 if quick else 50)
         # over Zenoh, buffer in its own process
         zinserts, zbatches = _over_zenoh(env_id, payloads, quick)
+        zinserts_unlogged, _ = _over_zenoh(env_id, payloads, quick, "--no-episode-log")
         bytes_per, minimum = memory_per_transition(spec, 1000, 20_000 if quick else 100_000)
         paper_gb = preallocated_bytes(spec, 1_000_000, 50_000) / 1e9
         results[name] = {
             "learner_updates_per_s": demand, "inserts_per_s_in_process": inserts, "batches_per_s_in_process": batches,
             "gathered_batches_per_s_32_per_request": gather,
+            "inserts_per_s_in_process_with_episode_log": inserts_logged,
+            "episode_log_vs_none_in_process": inserts_logged / inserts,
             "inserts_per_s_zenoh": zinserts, "batches_per_s_zenoh": zbatches,
+            "inserts_per_s_zenoh_no_episode_log": zinserts_unlogged,
+            "episode_log_vs_none_zenoh": zinserts / zinserts_unlogged,
+            "episode_log_bytes_per_transition": log_bytes_per_transition,
             "zenoh_batches_vs_learner_demand": zbatches / demand,
             "bytes_per_transition": bytes_per, "minimum_bytes_per_transition": minimum,
             "memory_overhead": bytes_per / minimum - 1,
             "reserved_gb_for_1e6_online_5e4_expert": paper_gb,
         }
         rows.append([name, inserts, batches, gather, zinserts, zbatches, demand, zbatches / demand, bytes_per, minimum, paper_gb])
+        log_rows.append([name, inserts, inserts_logged, inserts_logged / inserts, zinserts_unlogged, zinserts,
+                         zinserts / zinserts_unlogged, log_bytes_per_transition])
     print_table("buffer (batch 128, 1000-step episodes)",
                 ["task", "inserts/s", "batches/s", "gathered/s (32 per request)", "inserts/s zenoh", "batches/s zenoh",
                  "learner/s", "zenoh x learner", "B/transition", "minimum B", "GB, 1e6 + 5e4"], rows)
+    print_table("the episode log's cost (transitions/s; each stored episode logged before it is acknowledged)",
+                ["task", "in-process", "in-process, logged", "ratio", "zenoh, --no-episode-log", "zenoh, logged",
+                 "ratio", "log B/transition"], log_rows)
     payload = {"results": results}
     write_json(out_dir, "buffer", payload)
     return payload
 
 
-def _over_zenoh(env_id: str, payloads: list[bytes], quick: bool) -> tuple[float, float]:
+def _over_zenoh(env_id: str, payloads: list[bytes], quick: bool, *options: str) -> tuple[float, float]:
     run = f"bench-buffer-{int(time.time())}"
     keys = P.Keys(run)
     comp = Components()
     try:
         comp.start("router")
         comp.start("buffer", "--run", run, "--env", env_id, "--learning-starts", "1000", "--spi-tolerance", "1e9",
-                   "--stats-interval", "0.2", "--runs-dir", str(comp.dir))
+                   "--stats-interval", "0.2", "--runs-dir", str(comp.dir), *options)
         with comp.session() as s:
             stats = StatsSnapshot(keys)
             s.declare_subscriber(keys.stats_all, stats.on_sample)

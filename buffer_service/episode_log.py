@@ -164,6 +164,10 @@ class EpisodeLog:
             with self._lock:
                 for path in segments(self.folder):
                     path.unlink(missing_ok=True)
+                try:
+                    self.folder.rmdir()  # a finished run's folder holds what it held before the log existed
+                except OSError:
+                    pass  # not there, or something else put there: left alone
 
     def stats(self) -> dict:
         return {"episode_log_replayed": self.replayed, "episode_log_appended": self.appended, "episode_log_bytes_written": self.bytes_written,

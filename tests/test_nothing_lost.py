@@ -132,5 +132,5 @@ def test_a_buffer_killed_before_any_checkpoint_comes_back_with_every_episode_it_
     # Every episode an actor had confirmed is in the buffer at the end (a few more may be: stored as the run
     # finished, their acks not awaited).
     assert received >= sum(int(a.group(1)) for a in actors)
-    assert not list((r.run_dir / "checkpoints" / "episode-log").glob("*.log"))  # compacted by the final checkpoint
+    assert not (r.run_dir / "checkpoints" / "episode-log").exists()  # compacted away by the final checkpoint
     assert r.procs.orphans == []
