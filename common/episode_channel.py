@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import collections
 import logging
-import math
 import threading
 import time
 from collections.abc import Callable
@@ -18,28 +17,16 @@ import zenoh
 
 from silcr.common import protocol as P
 from silcr.common.lifecycle import StopFlag
+from silcr.common.outbox import ACK_TIMEOUT_S, DEFAULT_OUTBOX_BYTES, Outbox
 from silcr.common.replay_server import Replay
 
 log = logging.getLogger("clients")
 
-#: An actor's outbox of unconfirmed episodes holds this many bytes by default (`--actor-outbox-mb`).
-DEFAULT_OUTBOX_BYTES = 64 * 1024 * 1024
-#: Seconds without an ack before an actor sends its unconfirmed episodes again; doubled while none
-#: comes, up to MAX_ACK_TIMEOUT_S. A buffer acks within tens of milliseconds when it keeps up.
-ACK_TIMEOUT_S = 5.0
-MAX_ACK_TIMEOUT_S = 60.0
 #: How long a stopping actor waits for a buffer out of reach to come back and confirm its last episodes.
 RECONNECT_GRACE_S = 3.0
 #: A stopping actor probes the buffer this often while its last episodes are unconfirmed (a probe or its
 #: ack sent while a link comes back can be lost before the routes are there again).
 CLOSE_PROBE_S = 1.0
-#: An actor asked again from the same seq within this many seconds takes it as the same ask.
-REWIND_HOLDOFF_S = 1.0
-
-
-def ep_bytes(ep: P.Episode) -> int:
-    """What an episode holds in memory (its arrays), for the outbox's bound."""
-    return ep.obs.nbytes + ep.actions.nbytes + ep.rewards.nbytes
 
 
 # ---------------------------------------------------------------------------
@@ -97,11 +84,9 @@ class ZenohEpisodeWriter(EpisodeWriter):
 
     BLOCK alone does not hold an episode: a put blocked for 5 s (a congested or cut link) makes Zenoh
     close the transport, and what its queues held is gone (issue 63). So each episode waits in a
-    bounded outbox until the buffer's cumulative ack (`EpisodeAck`) says it is held durably; `written`
-    counts those. The buffer asks for episodes again from a gap it sees (it refuses what comes after
-    one); a buffer back after none listened, or acks that stop coming for `ack_timeout` seconds
-    (doubling while none comes), get the oldest unconfirmed episode again, whose answer says what is
-    missing. A full outbox (`outbox_full`) stops the actor stepping, as the rate limiter does.
+    bounded `Outbox` until the buffer's cumulative ack (`EpisodeAck`, on this actor's own key) says it
+    is held durably; `written` counts those. The outbox says what to send again (`outbox.py`); a full
+    one (`outbox_full`) stops the actor stepping, as the rate limiter does.
     """
 
     def __init__(self, session: zenoh.Session, keys: P.Keys, stop: StopFlag, actor_id: int, incarnation: int,
@@ -119,22 +104,9 @@ class ZenohEpisodeWriter(EpisodeWriter):
         self._resumed.set()
         self.throttle_rejections: collections.Counter[str] = collections.Counter()
         self._throttle = session.declare_subscriber(keys.control_throttle, self._on_throttle)
-        # The outbox: seq -> episode, oldest first.
-        self._lock = threading.Lock()
-        self._outbox: collections.OrderedDict[int, P.Episode] = collections.OrderedDict()
-        self._outbox_bytes = 0
-        self.outbox_limit = outbox_bytes
-        self._next = 0  # the next seq to send
-        self._sent_upto = 0  # one past the highest seq ever sent: a send below it is a resend
-        self._confirmed = -1
-        self._rewind_to: int | None = None  # set by an ack asking for episodes again
-        self._rewound, self._rewound_at = -1, -math.inf  # the last such ask taken, and when
+        self.outbox = Outbox(outbox_bytes, ack_timeout)
         self._acked = threading.Event()
-        self._listened = True
-        self._came_back = False
-        self._base_timeout = self._timeout = ack_timeout
-        self._last_progress = time.monotonic()
-        self.sent = self.resent = self.rewinds = self.acks = 0
+        self._listened, self._came_back = True, False
         self.outbox_full_s = 0.0
         self.ack_rejections: collections.Counter[str] = collections.Counter()
         self._acks = session.declare_subscriber(keys.episode_acks(actor_id), self._on_ack)
@@ -156,21 +128,9 @@ class ZenohEpisodeWriter(EpisodeWriter):
             self.ack_rejections[e.reason] += 1
             log.warning("ignoring malformed episode ack (%s): %s", e.reason, e)
             return
-        if ack.incarnation != self.incarnation or ack.actor_id != self.actor_id:
-            return  # a predecessor's, or another actor's with the same id
-        with self._lock:
-            self.acks += 1
-            while self._outbox and next(iter(self._outbox)) <= ack.confirmed:
-                _, ep = self._outbox.popitem(last=False)
-                self._outbox_bytes -= ep_bytes(ep)
-                self.written += 1
-            if ack.confirmed > self._confirmed:
-                self._confirmed = ack.confirmed
-                self._last_progress = time.monotonic()
-                self._timeout = self._base_timeout
-            if ack.resend_from is not None and ack.resend_from < self._next:
-                self._rewind_to = ack.resend_from
-        self._acked.set()
+        if (ack.actor_id, ack.incarnation) == (self.actor_id, self.incarnation):  # not a predecessor's
+            self.written += self.outbox.take_ack(ack)
+            self._acked.set()
 
     def paused(self) -> bool:
         """The latest throttle message's word."""
@@ -194,105 +154,57 @@ class ZenohEpisodeWriter(EpisodeWriter):
         self.waited_for_buffer_s += time.monotonic() - t0
         return self.buffer_listening()
 
-    # -- the outbox ----------------------------------------------------------------
-    def unconfirmed(self) -> int:
-        return len(self._outbox)
-
     def outbox_full(self) -> bool:
-        """Whether the outbox holds its limit (it always takes one episode, however large)."""
-        return self._outbox_bytes >= self.outbox_limit
+        return self.outbox.full()
 
     def wait_for_room(self, timeout: float) -> bool:
         """Wait up to `timeout` s for acks to make room in the outbox, sending again what is due meanwhile."""
         t0 = time.monotonic()
-        while self.outbox_full() and time.monotonic() - t0 < timeout and not self._stop.is_set():
+        while self.outbox.full() and time.monotonic() - t0 < timeout and not self._stop.is_set():
             self._acked.clear()
             self.pump()
             self._acked.wait(min(0.05, timeout))
         self.outbox_full_s += time.monotonic() - t0
-        return not self.outbox_full()
+        return not self.outbox.full()
 
     def write(self, ep: P.Episode) -> bool:
         """Keep `ep` until the buffer confirms it and send it now if a buffer listens (always True: an
         episode is given up only when the actor stops, `close`)."""
-        with self._lock:
-            self._outbox[ep.seq] = ep
-            self._outbox_bytes += ep_bytes(ep)
-            if len(self._outbox) == 1:
-                self._last_progress = time.monotonic()  # the ack clock starts with the oldest unconfirmed
+        self.outbox.add(ep)
         self.pump()
         return True
 
     def pump(self) -> None:
-        """Send what the outbox has not sent, and what the buffer asked for again. Actor thread only;
-        cheap when nothing is due (it runs after every step)."""
+        """Send what the outbox says is due. Actor thread only; cheap when nothing is (it runs after every step)."""
         now = time.monotonic()
-        timed_out = bool(self._outbox) and now - self._last_progress > self._timeout
-        if not (self._came_back or timed_out or self._rewind_to is not None or self._unsent()):
+        if not (self._came_back or self.outbox.anything_due(now)) or not self.buffer_listening():
             return
-        if not self.buffer_listening():
-            return
-        with self._lock:
-            if not self._outbox:
-                self._came_back = False
-                return
-            oldest = next(iter(self._outbox))
-            rewind, self._rewind_to = self._rewind_to, None
-            if rewind is not None and rewind < self._next and (
-                    rewind != self._rewound or now - self._rewound_at > REWIND_HOLDOFF_S):
-                # Asked again from a gap: one ask per gap (the refusals of what was in flight behind it
-                # repeat it for a moment).
-                self._next = max(rewind, oldest)
-                self._rewound, self._rewound_at = rewind, now
-                self.rewinds += 1
-            due = []
-            if self._came_back or timed_out:
-                # A buffer back after none listened, or acks that stopped coming: send the oldest unconfirmed
-                # again as a probe. Its ack (or the buffer's ask to send again from a gap) says what is missing,
-                # rather than everything sent again (after a 20 s cut, thousands the buffer mostly had).
-                # Doubled while acks do not come; a buffer that is back starts the clock afresh.
-                self._timeout = self._base_timeout if self._came_back else min(2 * self._timeout, MAX_ACK_TIMEOUT_S)
-                self._came_back = False
-                self._last_progress = now
-                if oldest < self._next:
-                    due.append(self._outbox[oldest])
-            due += [ep for seq, ep in self._outbox.items() if seq >= self._next]
-        for ep in due:
-            ep.resend_from = oldest  # what this actor can still send again, as of now
+        came_back, self._came_back = self._came_back, False
+        for ep in self.outbox.due(now, came_back):
             self._pub.put(ep.encode())
-            self.sent += 1
-            self.resent += ep.seq < self._sent_upto
-            self._next = max(self._next, ep.seq + 1)
-            self._sent_upto = max(self._sent_upto, ep.seq + 1)
-
-    def _unsent(self) -> bool:
-        return bool(self._outbox) and next(reversed(self._outbox)) >= self._next
+            self.outbox.mark_sent(ep)
 
     def close(self, timeout: float) -> None:
         """Wait up to `timeout` s for the buffer to confirm what is left (for a buffer out of reach, up to
         RECONNECT_GRACE_S of it: a transport Zenoh closed comes back within a second or two); count the
         rest as not written."""
         t0 = time.monotonic()
-        self._base_timeout = self._timeout = min(self._timeout, CLOSE_PROBE_S)  # no time left to back off
-        while self._outbox and (elapsed := time.monotonic() - t0) < timeout and (
+        self.outbox.hurry(CLOSE_PROBE_S)
+        while len(self.outbox) and (elapsed := time.monotonic() - t0) < timeout and (
                 self.buffer_listening() or elapsed < RECONNECT_GRACE_S):
             self._acked.clear()
             self.pump()
             self._acked.wait(0.1)
-        with self._lock:
-            self.unwritten += len(self._outbox)
-            if self._outbox:
-                log.warning("stopping with %d episodes the buffer has not confirmed (seq %d to %d)", len(self._outbox),
-                            next(iter(self._outbox)), next(reversed(self._outbox)))
+        held = self.outbox.give_up()
+        if held is not None:
+            self.unwritten += held[0]
+            log.warning("stopping with %d episodes the buffer has not confirmed (seq %d to %d)", *held)
 
     def stats(self) -> dict:
-        return super().stats() | {
+        return super().stats() | self.outbox.stats() | {
             "malformed_throttle": sum(self.throttle_rejections.values()),
             "throttle_rejections": dict(self.throttle_rejections),
-            "episodes_unconfirmed": len(self._outbox), "outbox_bytes": self._outbox_bytes,
-            "outbox_limit_bytes": self.outbox_limit, "outbox_full": self.outbox_full(),
-            "outbox_full_s": self.outbox_full_s, "episodes_sent": self.sent, "episodes_resent": self.resent,
-            "resend_rounds": self.rewinds, "acks_received": self.acks, "malformed_acks": sum(self.ack_rejections.values()),
+            "outbox_full_s": self.outbox_full_s, "malformed_acks": sum(self.ack_rejections.values()),
         }
 
 
