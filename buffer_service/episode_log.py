@@ -95,11 +95,14 @@ class EpisodeLog:
         if self.intact:
             log.error("the episode log could not be written (%s): acks wait for the next buffer checkpoint", e)
         self.intact = False
+        self._close_file()
+
+    def _close_file(self) -> None:
         if self._file is not None:
             try:
                 self._file.close()
             except OSError:
-                pass
+                pass  # what it held is counted as not written already, or was flushed
             self._file = None
 
     def append(self, payload: bytes) -> None:
@@ -133,9 +136,7 @@ class EpisodeLog:
     def rotate(self) -> int:
         """A checkpoint is being taken of everything stored so far: start a new segment; return its number."""
         self.flush()
-        if self._file is not None:
-            self._file.close()
-            self._file = None
+        self._close_file()
         self.segment += 1
         if not self.intact:
             self.intact = True  # a new chain starts from this checkpoint ...
@@ -154,12 +155,7 @@ class EpisodeLog:
 
     def close(self, checkpointed: bool) -> None:
         """On the way out; with `checkpointed` (the final checkpoint holds everything), remove every segment."""
-        if self._file is not None:
-            try:
-                self._file.close()
-            except OSError:
-                pass
-            self._file = None
+        self._close_file()
         if checkpointed:
             with self._lock:
                 for path in segments(self.folder):
