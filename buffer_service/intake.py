@@ -111,9 +111,13 @@ class Intake:
         return held_from if last is None else max(last + 1, held_from)
 
     def replay(self, ep: P.Episode) -> bool:
-        """Store an episode from the episode log on a restart, unless the checkpoint already holds it."""
+        """Store an episode from the episode log on a restart, unless the checkpoint already holds it. It was
+        confirmed, so it is stored even after a gap (a record of the log that could not be read): the gap is
+        counted missing."""
         if ep.seq <= self.last_seq.get((ep.actor_id, ep.incarnation), -1):
             return False
+        if ep.seq > self.expected(ep):
+            ep.resend_from = ep.seq
         self.store(ep)
         return True
 

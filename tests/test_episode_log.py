@@ -75,6 +75,25 @@ def test_replay_after_a_checkpoint_stores_only_what_the_checkpoint_lacks(tmp_pat
     assert [p.stem for p in segments(tmp_path / "log")] == [str(segment)]  # the older segment is gone
 
 
+def test_a_record_the_log_cannot_read_is_a_gap_the_replay_counts_missing_and_steps_over(tmp_path):
+    """A corrupt record in the middle ends its segment's reading; the confirmed episodes of the next segment
+    are stored all the same (a buffer that refused them would not start)."""
+    log = EpisodeLog(tmp_path / "log")
+    for ep in _episodes(3):
+        log.append(ep.encode())
+    log.rotate()
+    for ep in _episodes(2, first=3):
+        log.append(ep.encode())
+    log.close(checkpointed=False)
+    first = segments(tmp_path / "log")[0]
+    data = bytearray(first.read_bytes())
+    data[data.rfind(_episodes(3)[1].obs.tobytes()) + 4] ^= 0x01  # seq 1's record: 1 and 2 are not read
+    first.write_bytes(bytes(data))
+    state = _state()
+    assert sum(state.intake.replay(ep) for ep in read(tmp_path / "log", state.limits)) == 3
+    assert [e.seq for e in state.fifo.episodes()] == [0, 3, 4] and state.intake.episodes_missing == 2
+
+
 def test_a_failed_write_stops_acks_until_a_checkpoint_taken_after_it_is_on_disk(tmp_path, monkeypatch):
     log = EpisodeLog(tmp_path / "log")
     eps = _episodes(3)
