@@ -62,7 +62,7 @@ def memory_per_transition(spec: EnvSpec, length: int, transitions: int) -> tuple
     before = tracemalloc.take_snapshot()
     state = ReplayState(cfg, spec)
     for p in payloads:
-        state.ingest(p)
+        state.intake.ingest(p)
     del payloads
     after = tracemalloc.take_snapshot()
     tracemalloc.stop()
@@ -75,7 +75,7 @@ def memory_per_transition(spec: EnvSpec, length: int, transitions: int) -> tuple
 def preallocated_bytes(spec: EnvSpec, online: int, expert: int) -> int:
     """What the two tables reserve at their first episode (pages are touched only as they fill)."""
     state = ReplayState(Config(run="bench", env=spec.env_id, online_capacity=online, expert_capacity=expert), spec)
-    state.ingest(_episodes(spec, 1, 10)[0])
+    state.intake.ingest(_episodes(spec, 1, 10)[0])
     return state.fifo.storage.nbytes() + state.heap.storage.nbytes()
 
 
@@ -93,7 +93,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
             state = ReplayState(cfg, spec)
             t0 = time.perf_counter()
             for p in payloads:
-                state.ingest(p)
+                state.intake.ingest(p)
             timings.append(time.perf_counter() - t0)
             # The same with the episode log (issue 63): each episode appended and handed to the operating
             # system before the next, the most a buffer flushes (it flushes once per burst of arrivals).
@@ -101,7 +101,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
             log = EpisodeLog(out_dir / f"episode-log-{name}-{i}")
             t0 = time.perf_counter()
             for p in payloads:
-                state.ingest(p)
+                state.intake.ingest(p)
                 log.append(p)
                 log.flush()
             logged.append(time.perf_counter() - t0)
@@ -110,7 +110,7 @@ def run(out_dir: Path, quick: bool = False) -> dict[str, Any]:
         inserts_logged = 1000 * len(payloads) / float(np.median(logged))
         log_bytes_per_transition = (sum(map(len, payloads)) + 8 * len(payloads)) / (1000 * len(payloads))
         req = P.SampleRequest(1, 128).encode()
-        batches = rate(lambda: state.answer(req).encode(), 50 if quick else 300)
+        batches = rate(lambda: state.sampler.answer(req).encode(), 50 if quick else 300)
         # The gather alone at 32 batches per request: what a GPU learner's data path could draw.
         gather = 32 * rate(lambda: compose_batches(state.fifo, state.heap, 32, 128, state.rng, state.labeller, spec.obs_dim,
                                                    spec.act_dim), 10 if quick else 50)

@@ -1,7 +1,8 @@
 """The buffer service's state without the network: D_O, D_E, the labeller, the rate limiter and the counters.
 
-`ReplayState` stores episodes (`ingest` a message, `store` a decoded one: `intake.py`), answers
-sample requests (`answer` a message, `sample` a decoded one: `sampler.py`) and reports its stats.
+`ReplayState` builds the buffer's parts once and saves and restores them together; callers talk to
+the parts: `intake` stores episodes (`ingest` a message, `store` a decoded one: `intake.py`), `sampler`
+answers sample requests (`answer` a message, `sample` a decoded one: `sampler.py`).
 What it keeps and how it labels follows the run's algorithm (`silcr.common.algorithms`):
 D_E holds the agent's best episodes, or demonstrations, or nothing (`tables.py`); batches mix
 D_E or not; the labeller writes the rewards. Unit tests and `silcr train --single-process`
@@ -12,7 +13,6 @@ from __future__ import annotations
 
 import logging
 import time
-from collections.abc import Container
 from pathlib import Path
 from typing import Any
 
@@ -69,45 +69,13 @@ class ReplayState:
         self.limits = spec.episode_limits(cfg.max_episode_bytes)
         self.rng = np.random.default_rng(seeds.buffer_sampling(cfg.seed))
         self.intake = Intake(self.tables, self.limiter, self.limits)
-        self.sampler = Sampler(self.tables, self.limiter, spec, self.rng, self.meta)
+        self.sampler = Sampler(self.tables, self.intake, self.limiter, spec, self.rng)
         self.started = time.time()
-
-    # -- the two directions of traffic -------------------------------------------------
-    def ingest(self, payload: bytes) -> P.Episode:
-        return self.intake.ingest(payload)
-
-    def decode(self, payload: bytes) -> P.Episode:
-        return self.intake.decode(payload)
-
-    def reject(self, e: P.ProtocolError) -> None:
-        self.intake.reject(e)
-
-    def store(self, ep: P.Episode) -> None:
-        self.intake.store(ep)
-
-    def answer(self, payload: bytes | None, learners: Container[int] | None = None) -> P.BatchReply:
-        return self.sampler.answer(payload, learners)
-
-    def sample(self, req: P.SampleRequest, keep_ratio: bool = False) -> P.BatchReply:
-        return self.sampler.sample(req, keep_ratio)
-
-    def take_learner_count(self, learner: int, updates: int) -> None:
-        self.sampler.take_learner_count(learner, updates)
-
-    def warm_start(self, demos: list[P.Episode]) -> None:
-        self.tables.warm_start(demos)
 
     @property
     def transitions_received(self) -> int:
         """The env steps the buffer has stored: the run's step count."""
         return self.intake.transitions_received
-
-    def meta(self) -> dict[str, Any]:
-        """What every reply says of the buffer: its algorithm (the learner checks it runs the same), the
-        transitions received, D_E, and the actors' recent returns."""
-        return {"algo": self.algo.name, "env_steps": self.intake.transitions_received,
-                "episodes_received": self.intake.episodes_received,
-                "online_transitions": len(self.fifo)} | self.tables.expert_meta() | self.intake.rollout_meta()
 
     # -- checkpoints (`snapshot.Checkpointed`) -------------------------------------------------
     def identity(self) -> dict[str, str]:
@@ -160,7 +128,7 @@ def open_replay(cfg: Config, spec: EnvSpec) -> tuple[ReplayState, snapshot.Snaps
         if cfg.resume:
             log.info("--resume: no buffer checkpoint at %s yet; starting empty", path)
         if cfg.expert_init:  # a restored D_E already holds what is left of them
-            state.warm_start(load_demos(Path(cfg.expert_init), spec))
+            state.tables.warm_start(load_demos(Path(cfg.expert_init), spec))
         return state, None
     t0 = time.monotonic()
     snap = snapshot.restore(path, state)

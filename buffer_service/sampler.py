@@ -12,7 +12,7 @@ from __future__ import annotations
 import collections
 import logging
 from collections.abc import Container
-from typing import Any, Callable
+from typing import Any
 
 import numpy as np
 
@@ -20,6 +20,7 @@ from silcr.common import protocol as P
 from silcr.common.envs import EnvSpec
 
 from .batches import compose_batches, discriminator_rows
+from .intake import Intake
 from .rate_limiter import SamplesPerInsertLimiter
 from .tables import Tables
 
@@ -29,10 +30,10 @@ log = logging.getLogger("buffer")
 class Sampler:
     COUNTERS = ("batches_served", "sample_requests", "sample_requests_rejected", "not_ready_replies")
 
-    def __init__(self, tables: Tables, limiter: SamplesPerInsertLimiter, spec: EnvSpec, rng: np.random.Generator,
-                 meta: Callable[[], dict[str, Any]]) -> None:
-        """`meta`: what every reply says of the buffer (`ReplayState.meta`)."""
-        self.tables, self.limiter, self.spec, self.rng, self.meta = tables, limiter, spec, rng, meta
+    def __init__(self, tables: Tables, intake: Intake, limiter: SamplesPerInsertLimiter, spec: EnvSpec,
+                 rng: np.random.Generator) -> None:
+        """`intake`: read only, for what every reply says of the episodes received (`describe`)."""
+        self.tables, self.intake, self.limiter, self.spec, self.rng = tables, intake, limiter, spec, rng
         self.batches_served = 0
         self.sample_requests = 0
         self.sample_requests_rejected = 0
@@ -91,6 +92,13 @@ class Sampler:
                      "served again" if served > updates else "not served twice")
             self.limiter.samples = updates
 
+    def describe(self) -> dict[str, Any]:
+        """What every reply says of the buffer: its algorithm (the learner checks it runs the same), the
+        transitions received, D_E, and the actors' recent returns."""
+        return {"algo": self.tables.algo.name, "env_steps": self.intake.transitions_received,
+                "episodes_received": self.intake.episodes_received,
+                "online_transitions": len(self.tables.fifo)} | self.tables.expert_meta() | self.intake.rollout_meta()
+
     def _refused(self, e: P.ProtocolError) -> None:
         self.sample_requests_rejected += 1
         self.request_rejections[e.reason] += 1
@@ -118,11 +126,11 @@ class Sampler:
             raise e
         if self.limiter.warming_up() or (heap is not None and heap.num_episodes == 0):
             self.not_ready_replies += 1
-            return P.BatchReply("not_ready", self.meta(), reason="warmup", retry_after_ms=200)
+            return P.BatchReply("not_ready", self.describe(), reason="warmup", retry_after_ms=200)
         k = min(req.batches, self.limiter.due() if keep_ratio else self.limiter.available())
         if k == 0:
             self.not_ready_replies += 1
-            return P.BatchReply("not_ready", self.meta(), reason="rate_limited", retry_after_ms=20)
+            return P.BatchReply("not_ready", self.describe(), reason="rate_limited", retry_after_ms=20)
         mixed_heap = heap if algo.mixes_expert else None
         batch = compose_batches(self.tables.fifo, mixed_heap, k, req.batch_size, self.rng, self.tables.labeller,
                                 self.spec.obs_dim, self.spec.act_dim, self.spec.action_dtype)
@@ -135,7 +143,7 @@ class Sampler:
         layout = P.BatchHeader(algo.name, batches=k, batch_size=req.batch_size,
                                online_rows=P.BatchHeader.online_rows_for(req.batch_size, mixed_heap is not None),
                                disc_batch_size=req.disc_batch_size).layout()
-        return P.BatchReply("ok", self.meta() | layout, batch, disc)
+        return P.BatchReply("ok", self.describe() | layout, batch, disc)
 
     def state(self) -> dict[str, Any]:
         return {name: getattr(self, name) for name in self.COUNTERS} | {"request_rejections": dict(self.request_rejections)}

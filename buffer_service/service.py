@@ -67,7 +67,7 @@ def run_buffer(cfg: Config, stop: StopFlag) -> int:
             if isinstance(item, SampleQuery):
                 _serve(replay, item, learners)
             elif isinstance(item, P.ProtocolError):  # judged by its size alone, in the receiving thread
-                replay.reject(item)
+                replay.intake.reject(item)
                 log.warning("rejected episode (%s): %s", item.reason, item)
                 release_free_memory()
             elif item is not None:
@@ -129,12 +129,12 @@ def _store(replay: ReplayState, payload: bytes, episode_log: EpisodeLog | None, 
     """Store one episode message, log it, and note the ack its sender is owed (also for one already held,
     whose ack went missing, and for one after a gap, whose sender is asked again from the gap)."""
     try:
-        ep = replay.decode(payload)
+        ep = replay.intake.decode(payload)
     except P.ProtocolError as e:
         log.warning("rejected episode (%s): %s", e.reason, e)
         return
     try:
-        replay.store(ep)
+        replay.intake.store(ep)
     except P.ProtocolError as e:
         acks.note(ep, replay.intake.expected(ep) if e.reason == "out_of_order" else None)
         if e.reason not in ("duplicate", "out_of_order"):  # those two are an actor sending again: expected
@@ -150,7 +150,7 @@ _REFUSAL_LOGS: dict[str, Every] = {}  # one line per reason every 10 s: an outsi
 
 def _serve(replay: ReplayState, query: SampleQuery, learners: Presence) -> None:
     try:
-        reply = replay.answer(query.payload, learners)
+        reply = replay.sampler.answer(query.payload, learners)
     except P.ProtocolError as e:
         if _REFUSAL_LOGS.setdefault(e.reason, Every(10.0)).due():
             log.warning("rejected sample request (%s): %s (%d refused so far)", e.reason, e,

@@ -1,6 +1,6 @@
 """The episode channel, actor -> buffer, both ends: `EpisodeWriter` over Zenoh (`ZenohEpisodeWriter`, BLOCK,
 holding each episode until the buffer confirms it) or in-process (`InProcessEpisodeWriter`, straight into the
-buffer's `Replay`). The buffer's Zenoh end is `replay_server.ZenohReplayServer` for the episodes and
+buffer's intake, `EpisodeStore`). The buffer's Zenoh end is `replay_server.ZenohReplayServer` for the episodes and
 `EpisodeAcks` for the confirmations; the throttle that pauses a writer comes back on the control channel
 (`control_channel.Throttle`).
 """
@@ -12,15 +12,26 @@ import logging
 import threading
 import time
 from collections.abc import Callable
+from typing import Protocol
 
 import zenoh
 
 from silcr.common import protocol as P
 from silcr.common.lifecycle import StopFlag
 from silcr.common.outbox import ACK_TIMEOUT_S, DEFAULT_OUTBOX_BYTES, Outbox
-from silcr.common.replay_server import Replay
 
 log = logging.getLogger("clients")
+
+
+class EpisodeStore(Protocol):
+    """What the in-process writer needs of the buffer (`buffer_service.intake.Intake`): nothing in common/
+    imports a component."""
+
+    limits: P.EpisodeLimits
+
+    def store(self, ep: P.Episode) -> None: ...
+
+    def reject(self, e: P.ProtocolError) -> None: ...
 
 #: How long a stopping actor waits for a buffer out of reach to come back and confirm its last episodes.
 RECONNECT_GRACE_S = 3.0
@@ -235,20 +246,20 @@ class EpisodeAcks:
 
 
 class InProcessEpisodeWriter(EpisodeWriter):
-    """Stores straight into the buffer's state. Never paused: the single-process loop keeps the ratio itself."""
+    """Stores straight into the buffer's intake. Never paused: the single-process loop keeps the ratio itself."""
 
-    def __init__(self, replay: Replay) -> None:
+    def __init__(self, intake: EpisodeStore) -> None:
         super().__init__()
-        self._replay = replay
+        self._intake = intake
 
     def write(self, ep: P.Episode) -> bool:
         """Store `ep` after the checks a message gets on arrival (`validate_episode`): a NaN in an episode is
         refused and counted here as the buffer service refuses it from the wire."""
         try:
-            P.validate_episode(ep, self._replay.limits)
+            P.validate_episode(ep, self._intake.limits)
         except P.ProtocolError as e:
-            self._replay.reject(e)
+            self._intake.reject(e)
             return True
-        self._replay.store(ep)
+        self._intake.store(ep)
         self.written += 1
         return True

@@ -23,6 +23,7 @@ import math
 import os
 import re
 from dataclasses import dataclass, field, fields
+from functools import cached_property
 from typing import Any, Callable, Generic, Mapping, TypeVar
 
 import msgpack
@@ -719,7 +720,8 @@ class BatchHeader:
 class BatchReply:
     """`status` is `ok` (`batch` holds `meta["batches"]` batches of `meta["batch_size"]` rows, and
     `disc` the discriminator's rows if they were asked for) or `not_ready` (see `reason`). `header`
-    is `meta`'s agreement between buffer and learner, typed."""
+    is `meta`'s agreement between buffer and learner, typed, worked out once per reply (on first use: a reply's
+    `meta` is not changed after that)."""
 
     status: str
     meta: dict[str, Any]
@@ -728,7 +730,7 @@ class BatchReply:
     reason: str = ""
     retry_after_ms: int = 0
 
-    @property
+    @cached_property
     def header(self) -> BatchHeader:
         return BatchHeader.of(self.meta, self.batch.action_kind if self.batch is not None else None,
                               self.disc is not None)

@@ -1,29 +1,15 @@
-"""The buffer's ends of the episode and sample channels. Over Zenoh, `ZenohReplayServer`: a subscriber and a
+"""The buffer's Zenoh ends of the episode and sample channels, `ZenohReplayServer`: a subscriber and a
 queryable feeding one bounded inbox, so that the buffer's one thread takes episodes and queries in the order
-they came. In one process, `Replay`: the methods of the buffer's state (`buffer_service.replay.ReplayState`)
-the in-process writer and stream call, so that nothing in common/ imports a component.
+they came. In one process the clients talk to the buffer's parts directly (`episode_channel.EpisodeStore`,
+`sample_channel.BatchSource`).
 """
 
 from __future__ import annotations
-
-from typing import Protocol
 
 import zenoh
 
 from silcr.common import protocol as P
 from silcr.common.inbox import Inbox
-
-
-class Replay(Protocol):
-    """What the in-process clients need of the buffer service's state."""
-
-    limits: P.EpisodeLimits
-
-    def store(self, ep: P.Episode) -> None: ...
-
-    def reject(self, e: P.ProtocolError) -> None: ...
-
-    def sample(self, request: P.SampleRequest, keep_ratio: bool) -> P.BatchReply: ...
 
 
 class SampleQuery:

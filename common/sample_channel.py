@@ -9,19 +9,25 @@ import collections
 import dataclasses
 import logging
 import time
-from typing import Iterator
+from typing import Iterator, Protocol
 
 import numpy as np
 import zenoh
 
 from silcr.common import protocol as P
 from silcr.common.lifecycle import StopFlag
-from silcr.common.replay_server import Replay
 
 log = logging.getLogger("clients")
 
 #: A sample query unanswered for this long counts as failed and is retried.
 QUERY_TIMEOUT_S = 10.0
+
+
+class BatchSource(Protocol):
+    """What the in-process stream needs of the buffer (`buffer_service.sampler.Sampler`): nothing in common/
+    imports a component."""
+
+    def sample(self, request: P.SampleRequest, keep_ratio: bool) -> P.BatchReply: ...
 
 
 # ---------------------------------------------------------------------------
@@ -37,14 +43,14 @@ class BatchStream:
     has already waited as long as the buffer asked), so the caller can keep its
     own schedule. It ends when the stop flag is set.
 
-    Every reply's `meta` describes the buffer (`last_meta`). The buffer's count of
+    Every reply's `meta` describes the buffer (`last_reply`, a not-ready one too). The buffer's count of
     received transitions never goes back unless it restarted from an older
     checkpoint: the stream counts such restarts and the transitions they lost.
     """
 
     def __init__(self, stop: StopFlag | None = None) -> None:
         self._stop = stop or StopFlag()
-        self.last_meta: dict = {}
+        self.last_reply: P.BatchReply | None = None
         self.batches = 0
         self.not_ready = 0
         self.sample_errors = 0
@@ -64,7 +70,7 @@ class BatchStream:
             yield self.get()
 
     def _account(self, reply: P.BatchReply) -> P.BatchReply | None:
-        self.last_meta = reply.meta
+        self.last_reply = reply
         buffer_steps = int(reply.meta.get("env_steps", 0))
         if buffer_steps < self._last_buffer_steps:
             self.buffer_restarts += 1
@@ -160,13 +166,13 @@ class InProcessBatchStream(BatchStream):
     """Samples straight from the buffer's state, keeping exactly the configured updates per step:
     it serves only the updates the inserted transitions are due (never runs ahead), and never waits."""
 
-    def __init__(self, replay: Replay, request: P.SampleRequest, stop: StopFlag | None = None) -> None:
+    def __init__(self, sampler: BatchSource, request: P.SampleRequest, stop: StopFlag | None = None) -> None:
         super().__init__(stop)
-        self._replay = replay
+        self._sampler = sampler
         self._request = request
 
     def get(self) -> P.BatchReply | None:
-        return self._account(self._replay.sample(self._request, keep_ratio=True))
+        return self._account(self._sampler.sample(self._request, keep_ratio=True))
 
     def due(self) -> Iterator[P.BatchReply]:
         """Every batch the buffer can serve now."""

@@ -75,15 +75,15 @@ class SingleProcessRun:
             raise ResumeError(str(e)) from None
         self.learner.books.start()  # the first weights are on the board before any actor acts
         # A hard kill leaves the two checkpoints at different moments: the limiter takes the learner's count.
-        self.replay.take_learner_count(self.learner.books.incarnation, self.learner.books.updates)
+        self.replay.sampler.take_learner_count(self.learner.books.incarnation, self.learner.books.updates)
         actor_cfg = cfg
         if self.replay.transitions_received:  # resumed actors must not replay the episodes of the first start
             actor_cfg = Config(**cfg.to_dict() | {"seed": seeds.resumed(cfg.seed, self.replay.transitions_received)})
-        self.actors = [Actor(actor_cfg, spec, i, InProcessEpisodeWriter(self.replay),
+        self.actors = [Actor(actor_cfg, spec, i, InProcessEpisodeWriter(self.replay.intake),
                              self.board.client(policy_factory(spec),
                                                random_initial_weights(actor_cfg, spec, seeds.actor(actor_cfg.seed, i))()))
                        for i in range(cfg.actors)]
-        self.stream = InProcessBatchStream(self.replay, self.learner.update.sample_request(), None)
+        self.stream = InProcessBatchStream(self.replay.sampler, self.learner.update.sample_request(), None)
         self.checkpoints = snapshot.PeriodicCheckpoints(checkpoint_path(cfg), cfg.buffer_checkpoint_interval)
         self.checkpoints.restore_parts(snap, self.replay)
         self._polled = [0] * len(self.actors)
@@ -117,7 +117,7 @@ class SingleProcessRun:
                         actor.weights.update()
             for batch in self.stream.due():
                 learner.step(batch)
-            learner.books.see(self.stream.last_meta)
+            learner.books.see(self.stream.last_reply)
             learner.books.poll()
             if learner.books.done(starved=not collecting):
                 finished = True

@@ -86,9 +86,12 @@ class Bookkeeping:
         return True
 
     # -- what the buffer says -------------------------------------------------------------
-    def see(self, meta: dict[str, Any]) -> None:
-        """Take in a reply's description of the buffer (any reply: a not-ready one too)."""
-        P.BatchHeader.of(meta).check_algo(self.algo)
+    def see(self, reply: P.BatchReply | None) -> None:
+        """Take in a reply's description of the buffer (any reply: a not-ready one too; None: none came yet)."""
+        if reply is None:
+            return
+        reply.header.check_algo(self.algo)
+        meta = reply.meta
         self.env_steps = max(self.env_steps, int(meta.get("env_steps", 0)))
         if "expert_transitions" in meta:
             self.buffer_meta = meta

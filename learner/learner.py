@@ -48,7 +48,7 @@ class Learner:
     def step(self, reply: P.BatchReply) -> None:
         """Train on one `ok` reply (one update per batch), then publish weights and checkpoint when due."""
         reply.header.check(self.books.algo, self.update.spec.env_id, self.update.spec.action_kind)
-        self.books.see(reply.meta)
+        self.books.see(reply)
         self.books.note_rows(reply)
         t0 = time.monotonic()
         n = self.update.train(reply, self.books.updates)

@@ -49,7 +49,7 @@ def run_learner(cfg: Config, stop: StopFlag) -> int:
                 if batch is not None:
                     lrn.step(batch)
                 else:
-                    lrn.books.see(stream.last_meta)
+                    lrn.books.see(stream.last_reply)
             except P.BufferMismatch as e:
                 log.error("%s", e)
                 mismatch = e

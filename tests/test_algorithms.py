@@ -81,8 +81,8 @@ def test_every_algorithm_has_a_labeller_and_a_buffer(tmp_path, name):
                                 **demos), EnvSpec.of("InvertedPendulum-v5"))
     assert (replay.heap is not None) == algo.keeps_expert
     for i in range(6):
-        replay.store(make_episode(10, ret=float(i), seq=i))
-    reply = replay.sample(P.SampleRequest(2, 8))
+        replay.intake.store(make_episode(10, ret=float(i), seq=i))
+    reply = replay.sampler.sample(P.SampleRequest(2, 8))
     assert reply.status == "ok" and reply.meta["algo"] == name
     assert (reply.meta["online_rows"] < 8) == algo.mixes_expert
     assert np.isfinite(reply.batch.rewards).all()

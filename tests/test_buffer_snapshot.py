@@ -27,8 +27,8 @@ def _state(spec, **kw):
 def _fill(state, n=30, first_seq=0):
     rng = np.random.default_rng(first_seq)
     for i in range(first_seq, first_seq + n):
-        state.ingest(make_episode(int(rng.integers(5, 15)), ret=float(rng.normal()), seq=i, start=i * 100).encode())
-    state.answer(P.SampleRequest(2, 16).encode())
+        state.intake.ingest(make_episode(int(rng.integers(5, 15)), ret=float(rng.normal()), seq=i, start=i * 100).encode())
+    state.sampler.answer(P.SampleRequest(2, 16).encode())
 
 
 def test_snapshot_restores_both_tables_and_counters(tmp_path, spec):
@@ -59,12 +59,12 @@ def test_snapshot_restores_both_tables_and_counters(tmp_path, spec):
         np.testing.assert_array_equal(a[0].obs, b[0].obs)
     # The same eviction order: the next better episode evicts the same one in both.
     ep = make_episode(10, ret=5.0, seq=99, start=1e4).encode()
-    state.ingest(ep)
-    back.ingest(ep)
+    state.intake.ingest(ep)
+    back.intake.ingest(ep)
     assert sorted([e.episode_return for e in back.heap.episodes()]) == sorted([e.episode_return for e in state.heap.episodes()])
     # An episode sent before the checkpoint is still recognised as a duplicate.
     with pytest.raises(P.ProtocolError, match="again"):
-        back.ingest(make_episode(5, seq=3).encode())
+        back.intake.ingest(make_episode(5, seq=3).encode())
 
 
 def test_corrupt_or_foreign_snapshot_is_refused(tmp_path, spec):
@@ -110,7 +110,7 @@ def test_snapshot_taken_then_overwritten_still_writes_what_was_taken(tmp_path, s
     taken = {(e.seq, bytes(e.obs.tobytes())) for e in snap.episodes}
     # enough better episodes to evict every D_O and D_E episode (ring reuse, D_E compaction)
     for i in range(100, 200):
-        state.ingest(make_episode(10, ret=10.0 + i, seq=i, start=i * 100).encode())
+        state.intake.ingest(make_episode(10, ret=10.0 + i, seq=i, start=i * 100).encode())
     assert not {e.seq for e in state.fifo.episodes() + state.heap.episodes()} & {s for s, _ in taken}
     path = tmp_path / "buffer.ckpt"
     snapshot.write(path, snap)
@@ -125,10 +125,10 @@ def test_every_counter_the_stats_publish_survives_a_restore(tmp_path, spec):
     state = _state(spec)
     _fill(state, 60)  # D_O (200 transitions) evicts; D_E (60) admits, evicts and rejects
     with pytest.raises(P.ProtocolError):
-        state.ingest(b"not an episode")
+        state.intake.ingest(b"not an episode")
     with pytest.raises(P.ProtocolError):
-        state.answer(b"not a request")
-    while state.sample(P.SampleRequest(64, 8), keep_ratio=True).status == "ok":  # until the ratio says wait
+        state.sampler.answer(b"not a request")
+    while state.sampler.sample(P.SampleRequest(64, 8), keep_ratio=True).status == "ok":  # until the ratio says wait
         pass
     inbox, writer = Inbox(), snapshot.BackgroundWriter(tmp_path / "buffer.ckpt")
     inbox.restore({"blocked_puts": 3, "dropped_at_close": 2})
@@ -208,7 +208,7 @@ def test_a_version_2_checkpoint_loads_into_the_parts(tmp_path, spec):
     assert back.limiter.state() == expected["limiter"]
     assert [[a, inc, s] for (a, inc), s in back.intake.last_seq.items()] == expected["last_seq"]
     with pytest.raises(P.ProtocolError, match="again"):  # the senders' sequence numbers came back too
-        back.ingest(make_episode(5, ret=0.0, seq=expected["last_seq"][0][2], start=0).encode())
+        back.intake.ingest(make_episode(5, ret=0.0, seq=expected["last_seq"][0][2], start=0).encode())
     # written again, it is today's version, by part
     snapshot.write(tmp_path / "v3.ckpt", snapshot.take(back))
     again = _state(spec)
@@ -222,22 +222,22 @@ def test_the_rollout_return_is_the_mean_of_the_last_100_episodes_and_survives_a_
     """`rollout_return` / `rollout_length` (progress.csv, stats, every reply's meta): the actors' own last 100
     episodes, not all of them and not D_E's; a restart from a checkpoint goes on with the same window."""
     state = _state(spec)
-    assert state.meta()["rollout_return"] is None and state.stats()["rollout_length"] is None
+    assert state.sampler.describe()["rollout_return"] is None and state.stats()["rollout_length"] is None
     for i in range(150):
-        state.ingest(make_episode(5 + i % 3, ret=float(i), seq=i, start=i * 100).encode())
+        state.intake.ingest(make_episode(5 + i % 3, ret=float(i), seq=i, start=i * 100).encode())
     last = range(50, 150)
-    meta = state.meta()
+    meta = state.sampler.describe()
     assert meta["rollout_return"] == pytest.approx(sum(last) / 100)
     assert meta["rollout_length"] == pytest.approx(sum(5 + i % 3 for i in last) / 100)
-    reply = P.BatchReply.decode(state.answer(P.SampleRequest(1, 16).encode()).encode())
+    reply = P.BatchReply.decode(state.sampler.answer(P.SampleRequest(1, 16).encode()).encode())
     assert reply.meta["rollout_return"] == meta["rollout_return"]
     snapshot.write(tmp_path / "buffer.ckpt", snapshot.take(state))
     back = _state(spec)
     snapshot.restore(tmp_path / "buffer.ckpt", back)
-    assert back.meta()["rollout_return"] == meta["rollout_return"]
+    assert back.sampler.describe()["rollout_return"] == meta["rollout_return"]
     for b in (state, back):
-        b.ingest(make_episode(5, ret=1000.0, seq=150, start=0).encode())
-    assert back.meta()["rollout_return"] == state.meta()["rollout_return"] == pytest.approx((sum(range(51, 150)) + 1000) / 100)
+        b.intake.ingest(make_episode(5, ret=1000.0, seq=150, start=0).encode())
+    assert back.sampler.describe()["rollout_return"] == state.sampler.describe()["rollout_return"] == pytest.approx((sum(range(51, 150)) + 1000) / 100)
     # A non-finite mean in a reply is refused where the learner decodes it, as D_E's returns are.
     bad = P.BatchReply("not_ready", {"env_steps": 1, "rollout_return": float("nan")}, reason="warmup")
     with pytest.raises(P.ProtocolError, match="rollout_return"):

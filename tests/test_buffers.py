@@ -271,13 +271,13 @@ def test_an_episode_is_never_stored_twice_but_a_restarted_actor_is_welcome():
     state = ReplayState(Config(run="t", env="InvertedPendulum-v5"), EnvSpec.of("InvertedPendulum-v5"))
     first = make_episode(5, ret=1.0, seq=0)
     first.incarnation = 7
-    state.ingest(first.encode())
+    state.intake.ingest(first.encode())
     with pytest.raises(P.ProtocolError) as info:
-        state.ingest(first.encode())
+        state.intake.ingest(first.encode())
     assert info.value.reason == "duplicate"
     restarted = make_episode(5, ret=1.0, seq=0)
     restarted.incarnation = 8
-    state.ingest(restarted.encode())
+    state.intake.ingest(restarted.encode())
     assert state.intake.episodes_received == 2 and len(state.fifo) == 10
     # An episode sent again is not a rejection (an actor resends what it has no ack for): counted on its own.
     assert state.intake.rejections == {} and state.stats()["episodes_duplicate"] == 1
@@ -297,7 +297,7 @@ def test_an_actor_that_holds_its_episodes_gets_them_stored_in_order_and_none_cou
     def send(seq, held_from):
         ep = make_episode(3, ret=float(seq), seq=seq)
         ep.incarnation, ep.resend_from = 9, held_from
-        state.store(P.Episode.decode(ep.encode(), state.limits))
+        state.intake.store(P.Episode.decode(ep.encode(), state.limits))
 
     send(0, 0)
     send(1, 1)
@@ -330,7 +330,7 @@ def test_gaps_in_an_actors_sequence_numbers_are_counted_as_missing_episodes():
         for seq in seqs:
             ep = make_episode(5, ret=1.0, seq=seq)
             ep.incarnation = incarnation
-            state.ingest(ep.encode())
+            state.intake.ingest(ep.encode())
     assert state.intake.episodes_missing == 1 + 2 and state.stats()["episodes_missing"] == 3
     again = ReplayState(cfg, EnvSpec.of("InvertedPendulum-v5"))
     again.restore(state.state())

@@ -66,8 +66,8 @@ def _replay(**over) -> ReplayState:
 
 def test_the_in_process_stream_keeps_exactly_the_ratio():
     replay = _replay(samples_per_insert=0.5)
-    writer = InProcessEpisodeWriter(replay)
-    stream = InProcessBatchStream(replay, P.SampleRequest(batches=4, batch_size=8))
+    writer = InProcessEpisodeWriter(replay.intake)
+    stream = InProcessBatchStream(replay.sampler, P.SampleRequest(batches=4, batch_size=8))
     assert list(stream.due()) == [] and stream.not_ready == 1  # warming up: 20 transitions or fewer
     for seq, length in enumerate((10, 10, 10, 30, 7)):
         writer.write(make_episode(length, ret=1.0, seq=seq))
@@ -84,15 +84,15 @@ def test_the_limiter_takes_each_learner_s_count_from_its_first_request():
     the batches in flight) and requests without a count change nothing."""
     replay = _replay()
     for i in range(10):
-        replay.store(make_episode(10, ret=float(i), seq=i))  # 100 transitions: 80 updates due after 20
+        replay.intake.store(make_episode(10, ret=float(i), seq=i))  # 100 transitions: 80 updates due after 20
     first = P.SampleRequest(4, 8, learner=7, updates=0)
-    assert replay.answer(first.encode()).meta["batches"] == 4 and replay.limiter.samples == 4
-    replay.answer(P.SampleRequest(4, 8, learner=7, updates=1).encode())  # lagging count: ignored
+    assert replay.sampler.answer(first.encode()).meta["batches"] == 4 and replay.limiter.samples == 4
+    replay.sampler.answer(P.SampleRequest(4, 8, learner=7, updates=1).encode())  # lagging count: ignored
     assert replay.limiter.samples == 8 and replay.sampler.limiter_realigned == 0
     # learner 9 restarted from a checkpoint at 2 updates: 6 served updates were lost with learner 7
-    reply = replay.answer(P.SampleRequest(4, 8, learner=9, updates=2).encode())
+    reply = replay.sampler.answer(P.SampleRequest(4, 8, learner=9, updates=2).encode())
     assert replay.limiter.samples == 2 + 4 and replay.sampler.limiter_realigned == 1 and reply.meta["batches"] == 4
-    replay.answer(P.SampleRequest(4, 8).encode())  # no learner, no count: an old client
+    replay.sampler.answer(P.SampleRequest(4, 8).encode())  # no learner, no count: an old client
     assert replay.limiter.samples == 10 and replay.stats()["limiter_realigned"] == 1
     with pytest.raises(P.ProtocolError, match="'updates' is -1"):
         P.SampleRequest.decode(P._pack({"kind": "sample", "batches": 1, "batch_size": 8, "learner": 9, "updates": -1}))
@@ -116,8 +116,8 @@ def test_a_decoded_batch_trains_without_the_read_only_warning():
 
     replay = _replay()
     for i in range(5):
-        replay.store(make_episode(10, ret=float(i), seq=i))
-    reply = P.BatchReply.decode(replay.sample(P.SampleRequest(2, 8)).encode())
+        replay.intake.store(make_episode(10, ret=float(i), seq=i))
+    reply = P.BatchReply.decode(replay.sampler.sample(P.SampleRequest(2, 8)).encode())
     assert not reply.batch.obs.flags.writeable
     with warnings.catch_warnings():
         warnings.simplefilter("error")

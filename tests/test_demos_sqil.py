@@ -87,9 +87,9 @@ def test_sqil_batches_are_half_online_at_0_and_half_demos_at_1(tmp_path, spec):
     state = ReplayState(cfg, spec)
     assert len(state.heap) == 40 and state.heap.num_episodes == 2
     for i in range(5):  # online episodes, one of them better than the demos
-        state.ingest(make_episode(10, ret=500.0 if i == 3 else 1.0, seq=i, start=10 * i).encode())
+        state.intake.ingest(make_episode(10, ret=500.0 if i == 3 else 1.0, seq=i, start=10 * i).encode())
     assert len(state.heap) == 40 and state.heap.max_return == 50.0  # D_E never changes
-    reply = state.answer(P.SampleRequest(4, 64).encode())
+    reply = state.sampler.answer(P.SampleRequest(4, 64).encode())
     assert reply.status == "ok"
     obs, rew = reply.batch.obs[:, 0].reshape(4, 64), reply.batch.rewards.reshape(4, 64)
     assert (rew[:, :32] == 0).all() and (rew[:, 32:] == 1).all()
@@ -137,16 +137,16 @@ def test_a_warm_started_expert_buffer_gives_way_only_to_better_own_episodes(tmp_
     assert sorted([e.episode_return for e in state.heap.episodes()]) == [60.0, 70.0]  # the best that fit M = 40, best first
     assert state.stats()["expert_init_transitions"] == 40
     for i in range(5):  # worse own episodes: the demonstrations stay
-        state.ingest(make_episode(20, ret=10.0 + i, seq=i).encode())
+        state.intake.ingest(make_episode(20, ret=10.0 + i, seq=i).encode())
     assert sorted([e.episode_return for e in state.heap.episodes()]) == [60.0, 70.0] and state.stats()["expert_init_transitions"] == 40
-    state.ingest(make_episode(20, ret=65.0, seq=5).encode())  # better than one of them
+    state.intake.ingest(make_episode(20, ret=65.0, seq=5).encode())  # better than one of them
     assert sorted([e.episode_return for e in state.heap.episodes()]) == [65.0, 70.0] and state.stats()["expert_init_transitions"] == 20
     # A checkpoint keeps them as demonstrations, and a resumed buffer does not add them again.
     snapshot.write(tmp_path / "warm" / "checkpoints" / "buffer.ckpt", snapshot.take(state))
     back, snap = open_replay(Config(**cfg.to_dict() | {"resume": True}), spec)
     assert snap is not None and sorted([e.episode_return for e in back.heap.episodes()]) == [65.0, 70.0]
     assert back.stats()["expert_init_transitions"] == 20
-    state.ingest(make_episode(20, ret=90.0, seq=6).encode())  # evicts the lowest: the agent's 65
+    state.intake.ingest(make_episode(20, ret=90.0, seq=6).encode())  # evicts the lowest: the agent's 65
     assert sorted([e.episode_return for e in state.heap.episodes()]) == [70.0, 90.0] and state.stats()["expert_init_transitions"] == 20
-    state.ingest(make_episode(20, ret=95.0, seq=7).encode())
+    state.intake.ingest(make_episode(20, ret=95.0, seq=7).encode())
     assert state.stats()["expert_init_transitions"] == 0  # all pushed out by better own episodes

@@ -56,12 +56,12 @@ def test_replay_after_a_checkpoint_stores_only_what_the_checkpoint_lacks(tmp_pat
     the checkpoint stores each episode once."""
     state, log = _state(), EpisodeLog(tmp_path / "log")
     for ep in _episodes(4):
-        state.store(ep)
+        state.intake.store(ep)
         log.append(ep.encode())
     segment = log.rotate()  # the checkpoint is taken here ...
     snap = snapshot.take(state)
     for ep in _episodes(3, first=4):
-        state.store(ep)
+        state.intake.store(ep)
         log.append(ep.encode())
     log.flush()
     snapshot.write(tmp_path / "buffer.ckpt", snap)  # ... and written; a crash before `checkpoint_written`

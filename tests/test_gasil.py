@@ -65,7 +65,7 @@ def _filled(cfg: Config, episodes: int = 10) -> ReplayState:
     """Episode i: 10 steps, observations from 100 * i, return i (D_E keeps the best by return)."""
     replay = ReplayState(cfg, EnvSpec.of(ENV))
     for i in range(episodes):
-        replay.store(make_episode(10, ret=float(i), seq=i, start=100.0 * i))
+        replay.intake.store(make_episode(10, ret=float(i), seq=i, start=100.0 * i))
     return replay
 
 
@@ -77,7 +77,7 @@ def test_the_buffer_serves_recent_rows_only_when_asked(tmp_path):
     cfg = _gasil_cfg(tmp_path, expert_capacity=30)  # D_E: the best 3 episodes (returns 7, 8, 9)
     replay = _filled(cfg)
     req = P.SampleRequest(batches=2, batch_size=8, disc_batch_size=200, recent_window=25)
-    reply = P.BatchReply.decode(replay.sample(P.SampleRequest.decode(req.encode())).encode())  # over the wire format
+    reply = P.BatchReply.decode(replay.sampler.sample(P.SampleRequest.decode(req.encode())).encode())  # over the wire format
     assert reply.status == "ok" and reply.meta["online_rows"] == 8  # SAC's batch: all D_O, env rewards
     recent = _episode_of(reply.disc.recent_obs)
     assert recent.shape == (400,) and set(recent) == {7, 8, 9}  # the newest whole episodes holding >= 25 transitions
@@ -85,18 +85,18 @@ def test_the_buffer_serves_recent_rows_only_when_asked(tmp_path):
     np.testing.assert_array_equal(reply.disc.recent_actions, np.full((400, 1), 0.5, np.float32))
 
     for ep in range(10, 13):  # worse episodes: D_E keeps 7-9, the recent window moves on
-        replay.store(make_episode(10, ret=-1.0, seq=ep, start=100.0 * ep))
-    reply = replay.sample(req)
+        replay.intake.store(make_episode(10, ret=-1.0, seq=ep, start=100.0 * ep))
+    reply = replay.sampler.sample(req)
     assert set(_episode_of(reply.disc.recent_obs)) == {10, 11, 12}
     assert set(_episode_of(reply.disc.expert_obs)) == {7, 8, 9}
 
-    old = P.BatchReply.decode(replay.sample(P.SampleRequest(2, 8)).encode())  # a learner from before GASIL
+    old = P.BatchReply.decode(replay.sampler.sample(P.SampleRequest(2, 8)).encode())  # a learner from before GASIL
     assert old.status == "ok" and old.disc is None
 
 
 def test_a_window_larger_than_d_o_uses_all_of_it(tmp_path):
     replay = _filled(_gasil_cfg(tmp_path), episodes=3)
-    reply = replay.sample(P.SampleRequest(1, 8, disc_batch_size=300, recent_window=10**9))
+    reply = replay.sampler.sample(P.SampleRequest(1, 8, disc_batch_size=300, recent_window=10**9))
     assert set(_episode_of(reply.disc.recent_obs)) == {0, 1, 2}
 
 
@@ -115,9 +115,9 @@ def test_sample_request_fields_round_trip_and_are_checked():
 def test_a_buffer_without_d_e_refuses_discriminator_rows_and_counts_it(tmp_path):
     cfg = Config(run="s", runs_dir=str(tmp_path), env=ENV, algo="sac", batch_size=8, learning_starts=10)
     replay = ReplayState(cfg, EnvSpec.of(ENV))
-    replay.store(make_episode(20))
+    replay.intake.store(make_episode(20))
     with pytest.raises(P.ProtocolError, match="disc_batch_size"):
-        replay.answer(P.SampleRequest(1, 8, 8, 100).encode())
+        replay.sampler.answer(P.SampleRequest(1, 8, 8, 100).encode())
     assert replay.sampler.sample_requests_rejected == 1
 
 
@@ -143,7 +143,7 @@ def test_r_d_is_recomputed_for_every_batch_from_the_current_discriminator(tmp_pa
     lrn = Learner(cfg, EnvSpec.of(ENV), InProcessWeights())
     spy = SacSpy(lrn)
     stored = replay.fifo.storage.rewards.copy()
-    reply = replay.sample(P.SampleRequest(1, 8, 8, 25))
+    reply = replay.sampler.sample(P.SampleRequest(1, 8, 8, 25))
     obs = torch.from_numpy(np.array(reply.batch.obs))
     actions = torch.from_numpy(np.array(reply.batch.actions))
     r_env = torch.from_numpy(np.array(reply.batch.rewards))
@@ -167,7 +167,7 @@ def test_the_warm_up_keeps_r_d_out_of_the_reward(tmp_path):
     replay = _filled(cfg)
     lrn = Learner(cfg, EnvSpec.of(ENV), InProcessWeights())
     spy = SacSpy(lrn)
-    reply = replay.sample(P.SampleRequest(1, 8, 8, 25))
+    reply = replay.sampler.sample(P.SampleRequest(1, 8, 8, 25))
     r_env = torch.from_numpy(np.array(reply.batch.rewards))
     for _ in range(4):
         lrn.step(reply)
@@ -188,7 +188,7 @@ def _all_state(lrn: Learner) -> list[torch.Tensor]:
 def test_a_resumed_gasil_learner_continues_bit_identically(tmp_path):
     cfg = _gasil_cfg(tmp_path, expert_capacity=30)
     replay = _filled(cfg)
-    batches = [replay.sample(P.SampleRequest(2, 8, 8, 25)) for _ in range(6)]
+    batches = [replay.sampler.sample(P.SampleRequest(2, 8, 8, 25)) for _ in range(6)]
     a = Learner(cfg, EnvSpec.of(ENV), InProcessWeights())
     for b in batches[:3]:
         a.step(b)
@@ -216,14 +216,15 @@ def test_a_learner_given_the_wrong_batches_says_why(tmp_path):
     cfg = _gasil_cfg(tmp_path, expert_capacity=30)
     lrn = Learner(cfg, EnvSpec.of(ENV), InProcessWeights())
     with pytest.raises(RuntimeError, match="no discriminator rows"):
-        lrn.step(_filled(cfg).sample(P.SampleRequest(1, 8)))
+        lrn.step(_filled(cfg).sampler.sample(P.SampleRequest(1, 8)))
     silcr_buffer = _filled(Config(**cfg.to_dict() | {"algo": "silcr"}))  # serves D_E rows too, but mixed in
-    reply = silcr_buffer.sample(P.SampleRequest(1, 8, 8, 25))
+    reply = silcr_buffer.sampler.sample(P.SampleRequest(1, 8, 8, 25))
     with pytest.raises(RuntimeError, match="the buffer service runs --algo silcr, this learner --algo gasil"):
         lrn.step(reply)
-    reply.meta.pop("algo")  # a buffer from before 0.4 does not name its algorithm: its batches tell
+    # a buffer from before 0.4 does not name its algorithm: its batches tell
+    unnamed = P.BatchReply(reply.status, {k: v for k, v in reply.meta.items() if k != "algo"}, reply.batch, reply.disc)
     with pytest.raises(RuntimeError, match="mixes D_E rows into its batches"):
-        Learner(cfg, EnvSpec.of(ENV), InProcessWeights()).step(reply)
+        Learner(cfg, EnvSpec.of(ENV), InProcessWeights()).step(unnamed)
 
 
 # -- the whole distributed system -------------------------------------------------

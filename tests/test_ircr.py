@@ -29,7 +29,7 @@ def _replay(online: int, expert: int) -> ReplayState:
 
 def _labels_by_episode(replay: ReplayState, batches: int = 8) -> dict[int, set[float]]:
     """The labels a batch gave each episode, by seq (make_episode's start = 1000 * seq)."""
-    reply = replay.sample(P.SampleRequest(batches, 64))
+    reply = replay.sampler.sample(P.SampleRequest(batches, 64))
     assert reply.status == "ok"
     seq = (reply.batch.obs[:, 0] // 1000).astype(int)
     out: dict[int, set[float]] = {}
@@ -81,7 +81,7 @@ def test_rows_carry_their_episodes_normalised_credit_as_d_o_and_d_e_turn_over():
     credits: dict[int, float] = {}
 
     def add(seq: int, ret: float) -> None:
-        replay.store(make_episode(10, ret=ret, seq=seq, start=1000 * seq))
+        replay.intake.store(make_episode(10, ret=ret, seq=seq, start=1000 * seq))
         credits[seq] = ret / 10
 
     for seq, ret in enumerate([1.0, 2.0, 3.0, 4.0]):
@@ -123,8 +123,8 @@ def test_rows_carry_their_episodes_normalised_credit_as_d_o_and_d_e_turn_over():
 def test_half_of_each_batch_comes_from_d_e():
     replay = _replay(online=1000, expert=30)
     for seq in range(10):
-        replay.store(make_episode(10, ret=float(seq), seq=seq, start=1000 * seq))
-    reply = replay.sample(P.SampleRequest(4, 64))
+        replay.intake.store(make_episode(10, ret=float(seq), seq=seq, start=1000 * seq))
+    reply = replay.sampler.sample(P.SampleRequest(4, 64))
     assert reply.meta["online_rows"] == 32
     seq = (reply.batch.obs[:, 0] // 1000).reshape(4, 64)
     assert set(np.unique(seq[:, 32:])) <= {7, 8, 9}  # the top 3 by return
@@ -135,8 +135,8 @@ def test_equal_credits_label_every_row_zero():
     the normalisation has no range and IRCR's reward carries no signal there (docs/algorithm.md)."""
     replay = _replay(online=1000, expert=100)
     for seq, n in enumerate([5, 9, 30, 12]):
-        replay.store(make_episode(n, ret=float(n), seq=seq, start=1000 * seq))
-    reply = replay.sample(P.SampleRequest(2, 64))
+        replay.intake.store(make_episode(n, ret=float(n), seq=seq, start=1000 * seq))
+    reply = replay.sampler.sample(P.SampleRequest(2, 64))
     assert (reply.batch.rewards == 0.0).all()
 
 
@@ -145,7 +145,7 @@ def test_a_checkpoint_restores_the_credit_range(tmp_path):
 
     replay = _replay(online=40, expert=20)
     for seq, ret in enumerate([1.0, -6.0, 3.0, 9.0, 0.5]):
-        replay.store(make_episode(10, ret=ret, seq=seq, start=1000 * seq))
+        replay.intake.store(make_episode(10, ret=ret, seq=seq, start=1000 * seq))
     path = tmp_path / "buffer.ckpt"
     snapshot.write(path, snapshot.take(replay))
     back = _replay(online=40, expert=20)

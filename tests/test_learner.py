@@ -36,14 +36,14 @@ def _learner(tmp_path, **over) -> tuple[Learner, Recorder, Config]:
 
 
 def _batch(replay: ReplayState, batches: int) -> P.BatchReply:
-    return replay.sample(P.SampleRequest(batches, 8))
+    return replay.sampler.sample(P.SampleRequest(batches, 8))
 
 
 def test_step_keeps_the_schedules(tmp_path):
     lrn, server, cfg = _learner(tmp_path)
     replay = ReplayState(cfg, EnvSpec.of(ENV))
     for i in range(6):
-        replay.store(make_episode(10, ret=float(i), seq=i))
+        replay.intake.store(make_episode(10, ret=float(i), seq=i))
     lrn.books.start()
     assert server.versions == [0] and lrn.books.evaluations.evals == 1  # the untrained policy's weights and evaluation
     for n in (2, 2, 2, 1):
@@ -55,7 +55,7 @@ def test_step_keeps_the_schedules(tmp_path):
     assert lrn.books.evaluations.evals == 2  # 60 env steps passed the evaluation at 40
     assert lrn.books.ages.policy_lag and lrn.books.ages.expert_age  # both halves of a SILCR batch measured apart
     assert not lrn.books.done(starved=False)
-    lrn.books.see({"env_steps": 100})
+    lrn.books.see(P.BatchReply("not_ready", {"env_steps": 100}))
     assert not lrn.books.done(starved=False) and lrn.books.done(starved=True)  # 7 of the 90 updates due: done only if starved
     lrn.books.finish(finished=True)
     rows = list(csv.DictReader(open(tmp_path / "lt" / "progress.csv")))
@@ -68,7 +68,7 @@ def test_policy_lag_counts_only_online_rows(tmp_path):
     lrn, _, cfg = _learner(tmp_path)
     replay = ReplayState(cfg, EnvSpec.of(ENV))
     for i in range(4):
-        replay.store(make_episode(10, ret=float(i), seq=i, version=0))
+        replay.intake.store(make_episode(10, ret=float(i), seq=i, version=0))
     lrn.books.policy_version = 10
     batch = _batch(replay, 1)
     versions = batch.batch.policy_version

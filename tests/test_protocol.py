@@ -185,7 +185,7 @@ def replay():
     state = ReplayState(Config(run="fuzz", env="InvertedPendulum-v5", algo="gasil", learning_starts=10,
                                expert_capacity=1000, online_capacity=5000), EnvSpec.of("InvertedPendulum-v5"))
     for i in range(20):
-        state.store(make_episode(10, ret=float(i), seq=i, start=100 * i))
+        state.intake.store(make_episode(10, ret=float(i), seq=i, start=100 * i))
     return state
 
 
@@ -221,8 +221,8 @@ def test_fuzzed_episodes_are_storable_or_rejected(replay):
     def use(ep):
         fresh = ReplayState(Config(run="f", env="InvertedPendulum-v5", learning_starts=0, expert_capacity=1000),
                             EnvSpec.of("InvertedPendulum-v5"))
-        fresh.store(ep)  # int64 columns, rows, D_E: OverflowError or anything else fails the test
-        assert fresh.sample(P.SampleRequest(1, 8)).status == "ok"
+        fresh.intake.store(ep)  # int64 columns, rows, D_E: OverflowError or anything else fails the test
+        assert fresh.sampler.sample(P.SampleRequest(1, 8)).status == "ok"
         P.Episode.decode(ep.encode(), LIMITS)
 
     _fuzz(make_episode(3, ret=1.0, version=2).encode(), lambda b: P.Episode.decode(b, LIMITS), use)
@@ -248,7 +248,7 @@ def test_fuzzed_weights_are_usable_or_rejected():
 def test_fuzzed_sample_requests_are_served_or_refused(replay):
     def use(req):
         try:
-            reply = replay.sample(req)
+            reply = replay.sampler.sample(req)
         except P.ProtocolError:
             return
         P.BatchReply.decode(reply.encode())
@@ -276,7 +276,7 @@ def test_fuzzed_batch_replies_are_trainable_or_rejected(replay):
             m = reply.disc.expert_obs.shape[0] // n
             assert reply.disc.rows(n - 1, m).recent_actions.shape[0] == m
 
-    _fuzz(replay.sample(P.SampleRequest(2, 8, 4, 50)).encode(), P.BatchReply.decode, use)
+    _fuzz(replay.sampler.sample(P.SampleRequest(2, 8, 4, 50)).encode(), P.BatchReply.decode, use)
 
 
 def test_fuzzed_control_messages_are_typed_or_rejected():

@@ -37,7 +37,7 @@ def _actor():
     board = InProcessWeights()
     good = initial_weights(spec.obs_dim, spec.act_dim, HIDDEN, 0)
     good.version = 3
-    return spec, replay, board, Actor(cfg, spec, 0, InProcessEpisodeWriter(replay), board.client(policy_factory(spec), good))
+    return spec, replay, board, Actor(cfg, spec, 0, InProcessEpisodeWriter(replay.intake), board.client(policy_factory(spec), good))
 
 
 def test_weights_that_overflow_are_refused_and_the_actor_keeps_its_policy():
