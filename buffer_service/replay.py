@@ -18,9 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from silcr.common import protocol as P
-from silcr.common import run_layout
-from silcr.common import seeds
+from silcr.common import run_layout, seeds
 from silcr.common.algorithms import algorithm
 from silcr.common.config import Config
 from silcr.common.demos import load_demos

@@ -1,6 +1,6 @@
 """What `silcr train` shows while a run goes: a progress bar (or plain lines when not on a terminal),
-one-off messages, and the divergence warning. Both launchers use it: `deploy.local` (processes)
-and `deploy.single_process`.
+one-off messages, and the divergence warning; and how a run ended (`report_end`, `StaleCheckpoints`). Both
+launchers use it: `deploy.local` (processes) and `deploy.single_process`, through `deploy.launch`.
 """
 
 from __future__ import annotations
@@ -8,9 +8,10 @@ from __future__ import annotations
 import sys
 import time
 from pathlib import Path
-from typing import Any
+from typing import Any, NamedTuple
 
 from silcr.common import run_layout
+from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT
 from silcr.learner.progress import read_rows
 
 
@@ -56,13 +57,37 @@ def best_evaluation(run_dir: Path) -> dict[str, Any] | None:
 CHECKPOINT_FILES = {"learner": run_layout.learner_checkpoint, "buffer": run_layout.buffer_checkpoint}
 
 
-def stale_checkpoints_message(run_dir: Path, components: list[str]) -> str:
-    """What `silcr train` says on stderr when a run ended but the final checkpoint of `components` could not be
-    written (it then exits with EXIT_STALE_CHECKPOINT, 4): which files are stale, and what that means."""
-    files = ", ".join(str(CHECKPOINT_FILES[c](run_dir)) for c in components)
-    return (f"silcr train: error: the final checkpoint of the {' and the '.join(components)} could not be written "
-            f"(see {run_layout.logs(run_dir)}): {files} {'is' if len(components) == 1 else 'are'} stale, from before the "
-            f"end of the run, and --resume would continue from there; progress.csv holds the whole run")
+class StaleCheckpoints(OSError):
+    """A run ended, but the final checkpoint of `components` ("learner", "buffer") could not be written: the files
+    on disk are from before the end, and --resume would go on from there."""
+
+    def __init__(self, run_dir: Path, components: list[str]) -> None:
+        self.components = components
+        files = ", ".join(str(CHECKPOINT_FILES[c](run_dir)) for c in components)
+        super().__init__(f"the final checkpoint of the {' and the '.join(components)} could not be written (see "
+                         f"{run_layout.logs(run_dir)}): {files} {'is' if len(components) == 1 else 'are'} stale, from "
+                         f"before the end of the run, and --resume would continue from there; progress.csv holds the "
+                         f"whole run")
+
+
+class RunEnd(NamedTuple):
+    """How a launcher's run ended: its exit code (0 finished, 130 stopped, 1 or 2 failed) and the components whose
+    final checkpoint could not be written."""
+
+    code: int
+    stale: list[str]
+
+
+def report_end(run_dir: Path, end: RunEnd, who: str = "silcr train") -> int:
+    """The one report of a run's end, for every launcher: stale checkpoints named on stderr (a finished run then
+    exits EXIT_STALE_CHECKPOINT, 4), a finished run's closing line; the exit code."""
+    if end.stale:
+        print(f"{who}: error: {StaleCheckpoints(run_dir, end.stale)}", file=sys.stderr)
+        if end.code == 0:
+            return EXIT_STALE_CHECKPOINT
+    if end.code == 0:
+        print(done_message(run_dir))
+    return end.code
 
 
 def divergence_warning(learner_stats: dict[str, Any]) -> str:

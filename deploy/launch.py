@@ -11,6 +11,10 @@ budget is spent it writes nothing at all: one line, and exit code 0 (`common/run
 Python API's in-process model from its first `learn` to `close`): the lock, the logs folder, the
 configuration saved. The options were checked before (`config`, `preflight`: the device too); how
 Ctrl-C and SIGTERM stop a run is `common/lifecycle.py`'s (one clean stop; a second Ctrl-C forces).
+
+How a run ended is reported here, once for both launchers (`console.report_end`): the closing
+line, or the final checkpoints that could not be written named (`console.StaleCheckpoints`, exit
+code 4); the Python API raises the same `StaleCheckpoints`.
 """
 
 from __future__ import annotations
@@ -21,13 +25,20 @@ from typing import Any, Callable, Iterator
 from silcr.common import run_layout
 from silcr.common.config import Config, ConfigError
 from silcr.common.run_lock import check_free, hold
+from silcr.deploy.console import RunEnd, report_end
 
 
 def train(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = None, who: str = "silcr train") -> int:
-    """Run `cfg` (already checked: `config.resolve`/`from_options` and `preflight.check`); raise
-    RunInUse when another process holds its run directory, ConfigError when the router's port is taken.
-    A distributed run gives `on_row` each new progress.csv row, typed, in this thread: False stops the run
-    cleanly (exit code 130), an exception stops it cleanly and is raised. `who` starts the lines it prints."""
+    """Run `cfg` (already checked: `config.resolve`/`from_options` and `preflight.check`); the exit code `silcr
+    train` ends with. Raise RunInUse when another process holds its run directory, ConfigError when the router's
+    port is taken. A distributed run gives `on_row` each new progress.csv row, typed, in this thread: False stops
+    the run cleanly (exit code 130), an exception stops it cleanly and is raised. `who` starts the lines it prints."""
+    return run_to_end(cfg, on_row, who).code
+
+
+def run_to_end(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = None, who: str = "silcr train") -> RunEnd:
+    """`train`, with the components whose final checkpoint could not be written (the Python API raises
+    `console.StaleCheckpoints` for them); the end already reported (`console.report_end`)."""
     check_free(cfg.run_dir)  # first: a live run of the same name is the likelier reason for a busy port
     if cfg.single_process:
         from silcr.common.process_env import spin_in_single_process
@@ -37,7 +48,7 @@ def train(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = None, w
 
     if cfg.resume and (done := finished_run(cfg)) is not None:  # the finished-run rule (common/run_end.py)
         print(f"{who}: {done.message()}", flush=True)
-        return 0
+        return RunEnd(0, [])
     if not cfg.single_process:
         from silcr.deploy.local import port_in_use
 
@@ -47,10 +58,12 @@ def train(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = None, w
         if cfg.single_process:
             from silcr.deploy.single_process import run_single_process
 
-            return run_single_process(cfg)
-        from silcr.deploy.local import run_train
+            end = run_single_process(cfg)
+        else:
+            from silcr.deploy.local import run_train
 
-        return run_train(cfg, on_row, who)
+            end = run_train(cfg, on_row, who)
+    return RunEnd(report_end(cfg.run_dir, end, who), end.stale)
 
 
 @contextlib.contextmanager

@@ -40,7 +40,7 @@ from silcr.common.lifecycle import (
     stop_signals_interrupt,
 )
 from silcr.common.zenoh_session import open_session, session_config
-from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
+from silcr.deploy.console import RunEnd, TrainingDisplay
 from silcr.deploy.monitor import StatsSnapshot
 
 log = logging.getLogger("train")
@@ -196,14 +196,14 @@ class StoppedByCaller(Exception):
     """The caller's row callback said stop (returned False)."""
 
 
-def run_train(cfg: Config, on_row: RowCallback | None = None, who: str = "silcr train") -> int:
-    """The run to its end; its exit code. `on_row` gets every new progress.csv row (typed), from this thread: False
+def run_train(cfg: Config, on_row: RowCallback | None = None, who: str = "silcr train") -> RunEnd:
+    """The run to its end; how it ended (reported by the launcher, `launch.report_end`). `on_row` gets every new progress.csv row (typed), from this thread: False
     stops the run cleanly (130), an exception stops it cleanly and is raised. `who` starts every line printed."""
     with caller_signal_handlers():  # the caller's (the Python API's caller's: a notebook's, say) come back after
         return _run_train(cfg, on_row, who)
 
 
-def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> int:
+def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> RunEnd:
     run_dir = cfg.run_dir  # held by the launcher (`launch.run_directory`), which checked the port
     child_cfg = Config(**cfg.to_dict())
     if not child_cfg.connect:
@@ -224,7 +224,7 @@ def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> int:
                 print(f"{who}: error: the Zenoh router did not start on {cfg.zenoh_listen} ({run.log('router')}):\n"
                       f"{_tail(run.log('router'))}", file=sys.stderr)
                 run.stop_all(order)
-                return 1
+                return RunEnd(1, [])
             time.sleep(0.1)
         with open_session(session_config([cfg.zenoh_listen], [], "peer", cfg.zenoh_config)) as session:
             session.declare_subscriber(keys.stats_learner, stats.on_sample)
@@ -235,7 +235,7 @@ def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> int:
                 run.start(role, child_cfg, role)
                 if cfg.resume and (failed := _wait_started(run, role, stats)):
                     print(f"{who}: error: {failed}", file=sys.stderr)
-                    return 2
+                    return RunEnd(2, [])
             actor_mode = actor_zenoh_mode(cfg)
             if actor_mode != cfg.zenoh_mode:
                 print(f"{who}: the {cfg.actors} actors join as Zenoh {actor_mode}s of the router "
@@ -257,17 +257,10 @@ def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> int:
     finally:
         ignore_stop_signals()  # let the children finish their clean exit
         run.stop_all(order)
-    stale = [name for name in ("learner", "buffer") if name in run.procs
-             and run.procs[name].exitcode == EXIT_STALE_CHECKPOINT]
-    if stale:
-        print(stale_checkpoints_message(run_dir, stale), file=sys.stderr)
-        if code == 0:
-            return EXIT_STALE_CHECKPOINT
-    if code == 0:
-        print(done_message(run_dir))
-    elif code == 1:  # 2 (a component cannot start) has said its one line; 130 is Ctrl-C
+    if code == 1:  # 2 (a component cannot start) has said its one line; 130 is Ctrl-C
         print(f"{who}: stopped with errors; the cause is in {run.failed_log or run.logs}", file=sys.stderr)
-    return code
+    return RunEnd(code, [name for name in ("learner", "buffer") if name in run.procs
+                         and run.procs[name].exitcode == EXIT_STALE_CHECKPOINT])
 
 
 class RowFeed:

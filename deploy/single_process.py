@@ -41,11 +41,11 @@ from silcr.common import run_layout, seeds
 from silcr.common.config import Config
 from silcr.common.envs import EnvSpec
 from silcr.common.episode_channel import InProcessEpisodeWriter
-from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT, StopFlag, ignore_stop_signals, stop_on_signals
+from silcr.common.lifecycle import StopFlag, ignore_stop_signals, stop_on_signals
 from silcr.common.sample_channel import InProcessBatchStream
 from silcr.common.schedule import Every
 from silcr.common.weights_channel import InProcessWeights
-from silcr.deploy.console import TrainingDisplay, done_message, stale_checkpoints_message
+from silcr.deploy.console import RunEnd, TrainingDisplay
 from silcr.learner.checkpoint import CheckpointError
 from silcr.learner.learner import Learner
 
@@ -157,12 +157,13 @@ class SingleProcessRun:
         return [name for name, ok in (("learner", self.checkpoint_written), ("buffer", buffer_written)) if not ok]
 
 
-def run_single_process(cfg: Config) -> int:
+def run_single_process(cfg: Config) -> RunEnd:
+    """The run to its end, in this process; how it ended (reported by the launcher, `launch.report_end`)."""
     with stop_on_signals(StopFlag()) as stop:  # the API and tests call this in their own process
         return _run_single_process(cfg, stop)
 
 
-def _run_single_process(cfg: Config, stop: StopFlag) -> int:
+def _run_single_process(cfg: Config, stop: StopFlag) -> RunEnd:
     run_dir = cfg.run_dir  # held by the launcher (`launch.run_directory`)
     # The log goes to a file, as each component's does in a distributed run; the terminal shows the display.
     logging.basicConfig(level=logging.INFO, filename=run_layout.single_process_log(run_dir), force=True,
@@ -173,20 +174,15 @@ def _run_single_process(cfg: Config, stop: StopFlag) -> int:
         run = SingleProcessRun(cfg)
     except ResumeError as e:
         print(f"silcr train: error: cannot resume: {e}", file=sys.stderr)
-        return 2
+        return RunEnd(2, [])
     with TrainingDisplay(cfg.total_steps) as display:
         # Ctrl-C once `run` returns would leave half-written checkpoints behind the atomic renames: it
         # settles the learner before returning, and the rest finishes with Ctrl-C ignored.
         finished = run.run(stop, display)
     ignore_stop_signals()
     stale = run.close()
-    if stale:
-        print(stale_checkpoints_message(run_dir, stale), file=sys.stderr)
-        if finished:
-            return EXIT_STALE_CHECKPOINT
     if finished:
-        print(done_message(run_dir))
-        return 0
+        return RunEnd(0, stale)
     print(f"silcr train: stopped ({stop.reason}) at {run.learner.books.updates} updates; checkpoints in "
           f"{run_layout.checkpoints(run_dir)}", file=sys.stderr)
-    return 130
+    return RunEnd(130, stale)

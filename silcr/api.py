@@ -267,12 +267,12 @@ class Model:
 
     # -- lifecycle ---------------------------------------------------------------------------------
     def close(self) -> None:
-        """Write the last checkpoints of an actors=0 model and release its run directory (also at exit)."""
+        """Write an actors=0 model's last checkpoints, release its run directory (also at exit); OSError once if one failed."""
         if self._session is not None:
             self._weights, self._steps = self._session.weights(), self._session.env_steps
-            self._session.close()
-            self._session = None
+            session, self._session = self._session, None
             self.cfg.resume = True  # a later learn goes on from the checkpoints just written
+            session.close()
 
     def __enter__(self) -> "Model":
         return self

@@ -22,7 +22,6 @@ from typing import Any, Callable
 from silcr.common import protocol as P
 from silcr.common import run_layout
 from silcr.common.config import Config, ConfigError
-from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT
 
 #: The components' loggers, written to <run dir>/logs/single-process.log while an actors=0 model learns.
 COMPONENT_LOGGERS = ("train", "learner", "buffer", "actor", "clients", "protocol", "mujoco")
@@ -84,8 +83,8 @@ class InProcessTraining:
 
     def close(self) -> None:
         """The last checkpoints written, the records closed, the run directory released; OSError when a final
-        checkpoint could not be written (the files on disk are stale)."""
-        from silcr.deploy.console import stale_checkpoints_message
+        checkpoint could not be written (`StaleCheckpoints`: the files on disk are stale)."""
+        from silcr.deploy.console import StaleCheckpoints
 
         try:
             with self.component_logs():
@@ -93,7 +92,7 @@ class InProcessTraining:
         finally:
             self._held.close()
         if stale:
-            raise OSError(stale_checkpoints_message(self.cfg.run_dir, stale).removeprefix("silcr train: error: "))
+            raise StaleCheckpoints(self.cfg.run_dir, stale)
 
     @contextlib.contextmanager
     def component_logs(self):
@@ -140,8 +139,10 @@ class DistributedTraining:
         """Run `silcr train`'s path to `cfg.total_steps`. A callback's False stops the run cleanly (every component
         stops and checkpoints); its exception does too, and is raised; a real Ctrl-C raises KeyboardInterrupt
         once they have stopped."""
+        from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT
         from silcr.common.run_lock import RunInUse
-        from silcr.deploy.launch import train
+        from silcr.deploy.console import StaleCheckpoints
+        from silcr.deploy.launch import run_to_end
 
         stopped = False
 
@@ -151,9 +152,10 @@ class DistributedTraining:
             return not stopped
 
         quiet = contextlib.nullcontext() if progress_bar else contextlib.redirect_stdout(io.StringIO())
+        stale: list[str] = []
         try:
             with quiet:
-                code = train(self.cfg, told if on_row is not None else None, who="silcr learn")
+                code, stale = run_to_end(self.cfg, told if on_row is not None else None, who="silcr learn")
         except (RunInUse, ConfigError) as e:
             raise RuntimeError(str(e)) from None
         except KeyboardInterrupt:  # Ctrl-C before the launcher took it over
@@ -163,8 +165,7 @@ class DistributedTraining:
         if code == 130 and not stopped:
             raise KeyboardInterrupt
         if code == EXIT_STALE_CHECKPOINT:
-            raise OSError(f"the run ended but its final checkpoints could not be written (exit code {code}); the "
-                          f"checkpoints in {run_layout.checkpoints(self.cfg.run_dir)} are stale (logs: {run_layout.logs(self.cfg.run_dir)})")
+            raise StaleCheckpoints(self.cfg.run_dir, stale)
         if code not in (0, 130):
             raise RuntimeError(f"the distributed run ended with exit code {code}; the components' logs are in "
                                f"{run_layout.logs(self.cfg.run_dir)} (the line above names the one that failed)")

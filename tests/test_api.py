@@ -136,6 +136,24 @@ def test_a_second_learn_goes_on_with_the_same_buffers_and_counters(tmp_path):
     again.close()
 
 
+def test_a_model_whose_final_checkpoint_cannot_be_written_says_which_file_is_stale(tmp_path):
+    """The API reports a stale checkpoint as `silcr train` does (deploy/console.py's `StaleCheckpoints`, an OSError)."""
+    from silcr.common.run_lock import check_free
+    from silcr.deploy.console import StaleCheckpoints
+
+    model = SILCR(ENV, runs_dir=tmp_path / "runs", seed=1, **SMALL)
+    model.learn(600)
+    ckpt = model.run_dir / "checkpoints" / "buffer.ckpt"
+    ckpt.unlink(missing_ok=True)
+    ckpt.mkdir()  # the final buffer checkpoint's rename onto it fails
+    with pytest.raises(StaleCheckpoints, match="the final checkpoint of the buffer could not be written") as e:
+        model.close()
+    assert isinstance(e.value, OSError) and str(ckpt) in str(e.value) and e.value.components == ["buffer"]
+    model.close()  # said once: the model is closed
+    ckpt.rmdir()
+    check_free(model.run_dir)  # the run directory was released (RunInUse otherwise)
+
+
 def test_a_bad_option_raises_naming_it_before_any_file_exists(tmp_path):
     runs = tmp_path / "runs"
     for options, name in ((dict(hidden=(0,)), "hidden"), (dict(tau=2.0), "tau"), (dict(hiden=(64,)), "hiden"),
