@@ -264,14 +264,14 @@ def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> RunEnd:
 
 
 class RowFeed:
-    """Hands the caller each new progress.csv row, typed, from the launcher's own loop (the learner writes them in
-    its process); a row is read whole once the next one or the file's end follows it."""
+    """Hands the caller each new progress.csv row, typed, from the launcher's own loop: the learner writes them in
+    its process, and `learner.progress.ProgressFollower` reads each once, as it is written."""
 
     def __init__(self, run_dir: Path, on_row: RowCallback) -> None:
-        from silcr.learner.progress import read_rows
+        from silcr.learner.progress import ProgressFollower
 
-        self.run_dir, self.on_row, self._read = run_dir, on_row, read_rows
-        self.seen = len(read_rows(run_dir))  # a resumed run's earlier rows were told before
+        self.on_row = on_row
+        self.rows = ProgressFollower(run_dir)  # a resumed run's earlier rows were told before
         self._next = 0.0
 
     def poll(self, now: bool = False) -> None:
@@ -282,9 +282,7 @@ class RowFeed:
         self._next = time.monotonic() + 0.5
         from silcr.learner.progress import typed
 
-        rows = self._read(self.run_dir)
-        for row in rows[self.seen:]:
-            self.seen += 1
+        for row in self.rows.new_rows():
             if self.on_row(typed(row)) is False:
                 raise StoppedByCaller
 

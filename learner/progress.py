@@ -66,6 +66,43 @@ def read_rows(run_dir: Path) -> list[dict[str, str]]:
         return []
 
 
+class ProgressFollower:
+    """A run's progress.csv followed as another process writes it (`tail -f`): `new_rows()` gives the whole rows
+    written since the last call, read from where the last call stopped. Rows already there when it starts are
+    skipped (a resumed run's earlier rows were told before); a row is taken once its line has ended, so a row
+    half-written, or cut back after a failed write, is never read. A file replaced or shorter than what was
+    read (rewritten) is read again from the start, skipping the rows already given."""
+
+    def __init__(self, run_dir: Path) -> None:
+        self.path = run_layout.progress(run_dir)
+        self.header: list[str] | None = None
+        self.offset = 0
+        self.inode: int | None = None
+        self.given = 0  # rows given, those skipped at the start counted in
+        self.new_rows()
+
+    def new_rows(self) -> list[dict[str, str]]:
+        try:
+            with open(self.path, "rb") as f:
+                st = os.fstat(f.fileno())
+                if st.st_ino != self.inode or st.st_size < self.offset:  # new or rewritten: from the start
+                    self.header, self.offset, self.inode, skip = None, 0, st.st_ino, self.given
+                else:
+                    skip = 0
+                f.seek(self.offset)
+                chunk = f.read()
+        except OSError:
+            return []
+        ended = chunk.rfind(b"\n") + 1  # only whole lines
+        self.offset += ended
+        lines = chunk[:ended].decode(errors="replace").splitlines()
+        if self.header is None and lines:
+            self.header = next(csv.reader([lines.pop(0)]))
+        rows = [dict(zip(self.header, values)) for values in csv.reader(lines) if values]
+        self.given += len(rows) - min(skip, len(rows))
+        return rows[skip:]
+
+
 def typed(row: dict[str, str]) -> dict[str, Any]:
     """A progress.csv row as the learner wrote it: numbers as numbers (int where whole), "" where empty."""
     out: dict[str, Any] = {}
