@@ -113,6 +113,9 @@ def router_config(listen: list[str], connect: list[str] | None = None, zenoh_con
     return conf
 
 
-def open_session(conf: zenoh.Config) -> zenoh.Session:
-    init_logging()
+def open_session(conf: zenoh.Config, zenoh_log: bool = True) -> zenoh.Session:
+    """`zenoh_log=False`: leave zenoh's logger off, unless this process turned it on before (the launcher's own
+    session, which lives in a Python API user's process: its lines would land in the user's standard output)."""
+    if zenoh_log:
+        init_logging()
     return zenoh.open(conf)

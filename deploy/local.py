@@ -226,7 +226,9 @@ def _run_train(cfg: Config, on_row: RowCallback | None, who: str) -> RunEnd:
                 run.stop_all(order)
                 return RunEnd(1, [])
             time.sleep(0.1)
-        with open_session(session_config([cfg.zenoh_listen], [], "peer", cfg.zenoh_config)) as session:
+        # Stats in, the run's end out; its transport's errors (peers closing at the end) would only reach the
+        # caller's standard output (a Python API user's): each component logs its own session's to its file.
+        with open_session(session_config([cfg.zenoh_listen], [], "peer", cfg.zenoh_config), zenoh_log=False) as session:
             session.declare_subscriber(keys.stats_learner, stats.on_sample)
             session.declare_subscriber(keys.stats_buffer, stats.on_sample)
             # With --resume, one at a time: a checkpoint that cannot be read stops the run before the

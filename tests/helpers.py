@@ -86,10 +86,14 @@ class Processes:
         return {**os.environ, "SILCR_TEST_TAG": self.tag, "PYTHONUNBUFFERED": "1",
                 "SILCR_RUNS_DIR": str(self.log_dir / "runs")}
 
-    def start(self, name: str, *args: str, new_session: bool = False, sigint_ignored: bool = False) -> subprocess.Popen:
-        """`sigint_ignored`: start it as a shell starts a background job, with SIGINT ignored (inherited)."""
+    def start(self, name: str, *args: str, new_session: bool = False, sigint_ignored: bool = False,
+              netns: str | None = None) -> subprocess.Popen:
+        """`sigint_ignored`: start it as a shell starts a background job, with SIGINT ignored (inherited); `netns`:
+        in that network namespace (a host of `bench.netns.Namespaces`)."""
         log = open(self.log_dir / f"{name}.log", "w")
         command = [sys.executable, "-m", "silcr.cli", *args]
+        if netns is not None:
+            command = ["ip", "netns", "exec", netns, *command]
         if sigint_ignored:  # the shell's way: an ignored disposition survives exec
             command = ["sh", "-c", "trap '' INT; exec \"$@\"", "sh", *command]
         p = subprocess.Popen(

@@ -10,14 +10,13 @@ Zenoh's lease and brought back: the actor must reconnect and go on publishing.
 from __future__ import annotations
 
 import subprocess
-import sys
 import time
 
 import pytest
 
 from silcr.bench.netns import Namespaces, why_not_namespaces
 from silcr.common import protocol as P
-from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, small_run_config, wait_for
+from tests.helpers import LatestJson, Processes, client_when_up, free_port, small_run_config, wait_for
 
 
 pytestmark = pytest.mark.skipif(bool(why_not_namespaces()), reason=str(why_not_namespaces()))
@@ -31,11 +30,7 @@ def test_actors_on_other_hosts_train_and_survive_a_network_cut(tmp_path):
     procs = Processes(tmp_path)
 
     def start(name: str, ns: str, *args: str):
-        log = open(tmp_path / f"{name}.log", "w")
-        procs.procs[name] = subprocess.Popen(
-            ["ip", "netns", "exec", ns, sys.executable, "-m", "silcr.cli", *args],
-            stdout=log, stderr=subprocess.STDOUT, env=procs.env(), cwd=REPO,
-        )
+        procs.start(name, *args, netns=ns)
 
     session = None
     with Namespaces(hosts=2) as nets:

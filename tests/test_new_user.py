@@ -25,8 +25,8 @@ SMALL = dict(hidden=(16, 16), learning_starts=300, batch_size=64, eval_interval=
 
 
 def _json_line(stream) -> dict:
-    """The script's next JSON line. Zenoh's own ERROR lines (a peer's session at Ctrl-C can log "Received Data
-    for unknown expr_id") go to the same standard output; they are not the script's."""
+    """The script's next JSON line, past any other (the launcher's own lines, and, before the launcher's session
+    kept zenoh's logger off, a Zenoh ERROR such as "Received Data for unknown expr_id" at Ctrl-C)."""
     while (line := stream.readline()) and not line.startswith("{"):
         pass
     return json.loads(line)
@@ -146,6 +146,21 @@ def test_a_script_read_from_standard_input_trains_with_actors(tmp_path):
     assert json.loads(r.stdout.strip().splitlines()[-1])["steps"] >= 1200
     logs = "".join(p.read_text() for p in (tmp_path / "stdin" / "logs").glob("*.log"))
     assert "the script ran" not in logs and "Traceback" not in logs
+
+
+def test_zenoh_writes_nothing_to_a_distributed_api_users_standard_output(tmp_path):
+    """Zenoh's logger writes to file descriptor 1: the launcher's own session, in the user's process, put its lines
+    (an ERROR at Ctrl-C; with RUST_LOG=info, every session's start and close) among the script's output."""
+    code = _script("""
+        model = SILCR("InvertedPendulum-v5", actors=1, runs_dir=RUNS, run="quiet", **SMALL)
+        model.learn(800, progress_bar=False)
+        print("the script's own line")
+    """, tmp_path)
+    r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=REPO, timeout=300,
+                       env={**os.environ, "RUST_LOG": "info"})
+    assert r.returncode == 0, r.stderr[-3000:]
+    assert r.stdout.strip() == "the script's own line", r.stdout[-2000:]
+    assert "zenoh" in (tmp_path / "quiet" / "logs" / "learner.log").read_text()  # the components still log theirs
 
 
 def test_the_smaller_things_a_new_user_saw(tmp_path):

@@ -12,14 +12,13 @@ import re
 import shutil
 import signal
 import subprocess
-import sys
 import time
 
 import pytest
 
 from silcr.bench.netns import Namespaces, why_not_namespaces
 from silcr.common import protocol as P
-from tests.helpers import REPO, LatestJson, Processes, client_when_up, free_port, small_run_config, wait_for
+from tests.helpers import LatestJson, Processes, client_when_up, free_port, small_run_config, wait_for
 from tests.test_train import _kill_and_wait_for_restart, _watched_run
 
 _ACTOR_END = re.compile(r"stopping \(.*\): \d+ episodes, \d+ steps; (\d+) episodes written to the buffer, (\d+) not")
@@ -36,9 +35,7 @@ def test_an_actor_whose_link_is_cut_for_20_s_loses_no_episode(tmp_path):
     procs = Processes(tmp_path)
 
     def start(name: str, ns: str, *args: str):
-        log = open(tmp_path / f"{name}.log", "w")
-        procs.procs[name] = subprocess.Popen(["ip", "netns", "exec", ns, sys.executable, "-m", "silcr.cli", *args],
-                                             stdout=log, stderr=subprocess.STDOUT, env=procs.env(), cwd=REPO)
+        procs.start(name, *args, netns=ns)
 
     session = None
     with Namespaces(hosts=1) as nets:
