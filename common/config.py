@@ -118,6 +118,11 @@ class Config:
                                     "end at success, such as MiniGrid's goal (docs/algorithm.md)")
     target_entropy_scale: float = _opt(0.89, {"train", "learner"}, "discrete actions: target entropy as a fraction of "
                                        "log |A| (CleanRL's sac_atari.py: 0.89; Christodoulou 2019: 0.98)")
+    target_entropy_per_dim: float = _opt(-1.0, {"train", "learner"}, "continuous actions: SAC's target entropy per "
+                                         "action dimension (the target is this x |A|; -1 is SAC's -|A|, the paper's). "
+                                         "Lower: a narrower policy, whose sampled episodes (what D_E keeps) differ less "
+                                         "from its mean action (what evaluations run); below log 2, the most a "
+                                         "squashed action dimension can have (docs/algorithm.md, \"Keeping what D_E holds\")")
     critic_norm: str = _opt("auto", {"train", "learner"}, "layer: a LayerNorm after each hidden layer of both "
                             "critics (RLPD, Ball et al. 2023), which keeps Q from extrapolating past the data; "
                             "none: plain layers as in the paper; auto: layer for the labelled algorithms "
@@ -390,6 +395,7 @@ _AT_MOST = {"batches_per_request": 64}
 _ABOVE_ZERO = ("samples_per_insert", "lr", "init_alpha", "disc_lr", "stats_interval", "actor_outbox_mb")
 _ZERO_TO_ONE = ("gamma", "tau", "target_entropy_scale")  # (0, 1]
 _LAYERS = ("hidden", "disc_hidden")
+TARGET_ENTROPY_PER_DIM_MAX = 0.6931471805599453  # log 2: a uniform action on (-1, 1), per dimension
 
 
 def value_problem(name: str, value: Any) -> str | None:
@@ -402,6 +408,8 @@ def value_problem(name: str, value: Any) -> str | None:
         return f"must be > 0, got {value}"
     if name in _ZERO_TO_ONE and not 0 < value <= 1:
         return f"must be in (0, 1], got {value}"
+    if name == "target_entropy_per_dim" and not value < TARGET_ENTROPY_PER_DIM_MAX:
+        return f"must be below log 2 = {TARGET_ENTROPY_PER_DIM_MAX:.4f} (a squashed action's most), got {value}"
     if name in _LAYERS and (not value or any(h < 1 for h in value)):
         return f"needs one or more positive layer sizes, got {value}"
     if name == "run" and value:

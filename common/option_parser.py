@@ -14,7 +14,7 @@ OPTION_GROUPS: dict[str, tuple[str, ...]] = {
     "run": ("run", "runs_dir", "env", "algo", "reward", "seed", "total_steps", "device", "torch_threads",
             "keep_denormals", "single_process", "max_restarts"),
     "algorithm": ("gamma", "lr", "tau", "grad_clip", "init_alpha", "time_limit_terminal", "absorbing_terminal",
-                  "target_entropy_scale", "tanh_log_prob", "critic_norm", "q_target_clip", "bc_weight", "demos",
+                  "target_entropy_scale", "target_entropy_per_dim", "tanh_log_prob", "critic_norm", "q_target_clip", "bc_weight", "demos",
                   "expert_init", "gasil_alpha", "gasil_reward", "disc_hidden", "disc_lr", "disc_grad_penalty",
                   "disc_batch_size", "disc_interval", "disc_warmup", "recent_window"),
     "networks": ("hidden", "weights_interval", "weights_fanout_mb_s", "weights_dtype"),

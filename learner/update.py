@@ -96,10 +96,14 @@ class Update:
             if cfg.bc_weight > 0:
                 raise ValueError(f"--bc-weight: {spec.env_id} has discrete actions; the behaviour-cloning term is "
                                  f"for continuous ones")
+            if cfg.target_entropy_per_dim != -1.0:
+                raise ValueError(f"--target-entropy-per-dim: {spec.env_id} has discrete actions; set "
+                                 f"--target-entropy-scale for them")
             dhp = DiscreteSacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, cfg.target_entropy_scale,
                                    cfg.time_limit_terminal, cfg.absorbing_terminal, critic_norm, target_reward_max)
             return DiscreteSac(spec.obs_dim, spec.n_actions, cfg.hidden, dhp, self.device)
-        hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, None, cfg.time_limit_terminal,
+        target_entropy = cfg.target_entropy_per_dim * spec.act_dim  # SAC's -|A| by default
+        hp = SacHyper(cfg.gamma, cfg.tau, cfg.lr, cfg.grad_clip, cfg.init_alpha, target_entropy, cfg.time_limit_terminal,
                       cfg.tanh_log_prob, cfg.absorbing_terminal, critic_norm, target_reward_max, cfg.bc_weight)
         return Sac(spec.obs_dim, spec.act_dim, cfg.hidden, hp, self.device)
 

@@ -17,6 +17,7 @@ from silcr.common.envs import EnvSpec, make_env
 from silcr.learner.evaluate import evaluate, rollout
 from silcr.learner.evaluations import Evaluations, keep_ratio
 from silcr.learner.sac import Sac, SacHyper
+from silcr.learner.update import Update
 from silcr.actor.policy import policy_for
 from tests.conftest import make_episode
 
@@ -139,6 +140,27 @@ def test_the_bc_term_pulls_the_policy_toward_d_es_actions_only():
     torch.manual_seed(5)
     b = _sac(0.0).update(*batch, expert_from=None)
     assert float(a["actor_loss"]) == float(b["actor_loss"]) and "bc_loss" not in a
+
+
+def test_the_target_entropy_is_the_option_per_action_dimension():
+    """`--target-entropy-per-dim` sets the target of the temperature loss (J(alpha), learner/sac.py): -|A| by default."""
+    spec = EnvSpec.of("Hopper-v5")  # |A| = 3
+    default = Update(from_options({"env": "Hopper-v5", "hidden": [16, 16]}, "train"), spec)
+    lower = Update(from_options({"env": "Hopper-v5", "hidden": [16, 16], "target_entropy_per_dim": -2.5}, "train"), spec)
+    assert default.sac.target_entropy == -3.0 and lower.sac.target_entropy == -7.5
+    # the temperature rises while the policy's entropy is below the target and falls while it is above
+    batch = _batch()
+    high = Sac(3, 2, [32, 32], SacHyper(target_entropy=2 * 0.65), torch.device("cpu"))  # near the most, 2 log 2
+    low = Sac(3, 2, [32, 32], SacHyper(target_entropy=2 * -5.0), torch.device("cpu"))
+    for _ in range(20):
+        high.update(*batch, expert_from=32)
+        low.update(*batch, expert_from=32)
+    assert float(high.alpha) > 1.0 > float(low.alpha)
+    with pytest.raises(ConfigError, match="--target-entropy-per-dim: must be below log 2"):
+        from_options({"env": "Hopper-v5", "target_entropy_per_dim": 0.7}, "train")
+    with pytest.raises(ValueError, match="--target-entropy-per-dim: .* has discrete actions"):
+        Update(from_options({"env": "MiniGrid-Empty-5x5-v0", "target_entropy_per_dim": -2.0}, "train"),
+               EnvSpec.of("MiniGrid-Empty-5x5-v0"))
 
 
 def test_bc_weight_is_refused_where_it_cannot_act():
