@@ -33,6 +33,7 @@ class EpisodeStore(Protocol):
 
     def reject(self, e: P.ProtocolError) -> None: ...
 
+
 #: How long a stopping actor waits for a buffer out of reach to come back and confirm its last episodes.
 RECONNECT_GRACE_S = 3.0
 #: A stopping actor probes the buffer this often while its last episodes are unconfirmed (a probe or its

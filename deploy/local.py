@@ -197,8 +197,9 @@ class StoppedByCaller(Exception):
 
 
 def run_train(cfg: Config, on_row: RowCallback | None = None, who: str = "silcr train") -> RunEnd:
-    """The run to its end; how it ended (reported by the launcher, `launch.report_end`). `on_row` gets every new progress.csv row (typed), from this thread: False
-    stops the run cleanly (130), an exception stops it cleanly and is raised. `who` starts every line printed."""
+    """The run to its end; how it ended (the launcher reports it: `console.report_end`). `on_row` gets every new
+    progress.csv row (typed), from this thread: False stops the run cleanly (130), an exception stops it cleanly and
+    is raised. `who` starts every line printed."""
     with caller_signal_handlers():  # the caller's (the Python API's caller's: a notebook's, say) come back after
         return _run_train(cfg, on_row, who)
 

@@ -158,7 +158,7 @@ class SingleProcessRun:
 
 
 def run_single_process(cfg: Config) -> RunEnd:
-    """The run to its end, in this process; how it ended (reported by the launcher, `launch.report_end`)."""
+    """The run to its end, in this process; how it ended (the launcher reports it: `console.report_end`)."""
     with stop_on_signals(StopFlag()) as stop:  # the API and tests call this in their own process
         return _run_single_process(cfg, stop)
 
