@@ -83,9 +83,11 @@ class Outbox:
         return n
 
     def anything_due(self, now: float) -> bool:
-        """Cheap: whether `due` could return anything but a probe for a buffer that came back."""
-        return bool(self._episodes) and (self._rewind_to is not None or now - self._last_progress > self._timeout
-                                         or next(reversed(self._episodes)) >= self._next)
+        """Cheap: whether `due` could return anything but a probe for a buffer that came back. Under the lock: an
+        ack taken in Zenoh's thread can empty the outbox between the two looks (StopIteration, seen once)."""
+        with self._lock:
+            return bool(self._episodes) and (self._rewind_to is not None or now - self._last_progress > self._timeout
+                                             or next(reversed(self._episodes)) >= self._next)
 
     def due(self, now: float, buffer_came_back: bool) -> list[P.Episode]:
         """What to send now, in order, each stamped with the oldest seq this outbox still holds."""

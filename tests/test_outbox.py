@@ -60,3 +60,35 @@ def test_the_outbox_is_full_at_its_bound_but_always_takes_one_episode():
     assert outbox.full()
     assert Outbox(limit_bytes=1).full() is False
     assert outbox.give_up() == (3, 0, 2) and len(outbox) == 0 and not outbox.full()
+
+
+def test_looking_for_due_episodes_while_acks_arrive_in_another_thread_never_raises():
+    """Zenoh's thread takes acks while the actor's thread asks `anything_due`: without the lock there, the outbox
+    could empty or change between its two looks (StopIteration ended an actor in the scale bench; this test, on
+    the code before, raised "OrderedDict mutated during iteration" within a second)."""
+    import sys
+    import threading
+
+    box = Outbox()
+    episodes = [make_episode(2, seq=i) for i in range(100_000)]
+    done = threading.Event()
+
+    def acks() -> None:
+        for ep in episodes:
+            if done.is_set():
+                return
+            box.add(ep)
+            box.take_ack(P.EpisodeAck(0, 1, ep.seq))
+
+    before = sys.getswitchinterval()
+    sys.setswitchinterval(1e-6)  # switch threads as often as the interpreter can: the window is a few bytecodes
+    thread = threading.Thread(target=acks)
+    thread.start()
+    try:
+        end = time.monotonic() + 2.0
+        while time.monotonic() < end and thread.is_alive():
+            box.anything_due(time.monotonic())
+    finally:
+        done.set()
+        thread.join()
+        sys.setswitchinterval(before)
