@@ -19,8 +19,8 @@ import time
 
 import pytest
 
+from silcr.common import protocol as P
 from silcr.learner.progress import PROGRESS_COLUMNS
-from common import protocol as P
 from tests.helpers import REPO, LatestJson, client_when_up, free_port, wait_for
 
 pytestmark = pytest.mark.slow
