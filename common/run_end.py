@@ -12,6 +12,12 @@ Runs finished before the file existed are recognised from the learner checkpoint
 counters (`silcr.learner.checkpoint.finished_run`): every env step of the budget collected
 and every update it is due made.
 
+Without `--resume`, a directory that holds a run (a learner checkpoint, or finished.json) is
+refused before a file is written (`check_new`): starting the same command twice, or reusing a
+`--run` name, would otherwise train from scratch over a run's checkpoints, progress.csv and
+best.silcr. A directory with neither (a run stopped before its first learner checkpoint) holds
+nothing `--resume` could go on from, and a new run starts there, as `silcr sweep` expects.
+
 Why exit 0 rather than idle: a component that exits 0 is one that every orchestrator leaves
 stopped (compose's `restart: on-failure`, a Kubernetes Job, Slurm), so nothing retrains the
 run, and an exit code is what they read (docs/deployment.md, "When a run ends").
@@ -26,7 +32,7 @@ from pathlib import Path
 
 from silcr.common import run_layout
 from silcr.common.atomic_file import write_atomic
-from silcr.common.config import Config
+from silcr.common.config import Config, ConfigError
 
 log = logging.getLogger("run_end")
 
@@ -66,6 +72,21 @@ def read(run_dir: Path) -> Finished | None:
         return Finished(str(data["run"]), int(data["env_steps"]), int(data["updates"]), int(data["total_steps"]))
     except (OSError, ValueError, KeyError, TypeError):
         return None
+
+
+def check_new(cfg: Config) -> None:
+    """Raise ConfigError (on --run) when `cfg` starts a new run, without --resume, in a directory that holds one."""
+    if cfg.resume:
+        return
+    run_dir, done = Path(cfg.run_dir), read(Path(cfg.run_dir))
+    if done is not None:
+        held = f"a run that finished at {done.env_steps} env steps"
+    elif run_layout.learner_checkpoint(run_dir).exists():
+        held = f"a run stopped midway (its checkpoints in {run_layout.checkpoints(run_dir)})"
+    else:
+        return
+    raise ConfigError("--run", f"{run_dir} already holds {held}; add --resume to go on with it, or pick another "
+                               f"--run name (or delete the directory to start that run again)")
 
 
 def target_updates(cfg: Config) -> int:

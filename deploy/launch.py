@@ -4,7 +4,8 @@
 process with `--single-process`, else as a router, a buffer service, a learner and the actors
 in processes of their own (`local.run_train`). Before anything starts it takes the run
 directory (one run per directory: `run_lock`) and, for a distributed run, checks that the
-router's port is free; either refusal raises before a file is written. With `--resume` on a run whose
+router's port is free, and without `--resume` that the directory holds no run already
+(`run_end.check_new`); each refusal raises before a file is written. With `--resume` on a run whose
 budget is spent it writes nothing at all: one line, and exit code 0 (`common/run_end.py`).
 
 `run_directory(cfg)` is what every way of training holds for a run's life (this `train`, and the
@@ -24,6 +25,7 @@ from typing import Any, Callable, Iterator
 
 from silcr.common import run_layout
 from silcr.common.config import Config, ConfigError
+from silcr.common.run_end import check_new
 from silcr.common.run_lock import check_free, hold
 from silcr.deploy.console import RunEnd, report_end
 
@@ -70,6 +72,8 @@ def run_to_end(cfg: Config, on_row: Callable[[dict[str, Any]], bool] | None = No
 def run_directory(cfg: Config) -> Iterator[None]:
     """The run directory held for the run's life (RunInUse if another process holds it), with its logs folder
     and `cfg` saved as config.toml (saved again by a caller that raises the budget)."""
+    check_free(cfg.run_dir)  # a live run is said first: it is the likelier reason
+    check_new(cfg)  # without --resume, a run is never started over another (common/run_end.py)
     with hold(cfg.run_dir):  # one run directory, one run
         run_layout.logs(cfg.run_dir).mkdir(parents=True, exist_ok=True)
         cfg.save(run_layout.config(cfg.run_dir))

@@ -314,6 +314,10 @@ def _main(argv: list[str] | None) -> int:
             from silcr.learner.checkpoint import finished_run  # torch: not for the actors
 
             done = finished_run(cfg) if cfg.resume else None
+            try:  # without --resume, never a new run over one the directory holds (the launcher checks it too)
+                run_end.check_new(cfg)
+            except ConfigError as e:
+                subs[role].error(str(e))
         if done is not None:
             print(f"silcr {role}: {done.message()}", flush=True)
             if role == "learner":  # the others hear it from the learner, as at the run's end

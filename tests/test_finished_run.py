@@ -1,9 +1,11 @@
 """The finished-run rule (common/run_end.py): starting a finished run again, by any launcher or component, changes
-nothing and exits 0 with one line; raising the budget goes on. Real runs, real processes, real files."""
+nothing and exits 0 with one line; raising the budget goes on; without --resume, a new run is never started over a
+run the directory holds. Real runs, real processes, real files."""
 
 from __future__ import annotations
 
 import hashlib
+import json
 import subprocess
 import sys
 
@@ -34,6 +36,10 @@ def _fingerprint(run_dir) -> dict[str, str]:
     return out
 
 
+def _finished_at(run_dir) -> int:
+    return json.loads((run_dir / "finished.json").read_text())["env_steps"]
+
+
 @pytest.mark.parametrize("mode", ["single-process", "distributed"])
 def test_resume_of_a_finished_run_changes_nothing_and_exits_0(tmp_path, mode):
     runs = tmp_path / "runs"
@@ -54,6 +60,15 @@ def test_resume_of_a_finished_run_changes_nothing_and_exits_0(tmp_path, mode):
         "raise --total-steps to go on" in lines[0], again.stdout
     assert _fingerprint(run_dir) == before  # no row, no checkpoint, no best.silcr, no config rewritten
 
+    # The same command without --resume (run twice, or a --run name used again) is refused: it would train from
+    # scratch over the run's checkpoints, progress.csv and best.silcr.
+    twice = _silcr("train", *args)
+    assert twice.returncode == 2 and "Traceback" not in twice.stderr, twice.stderr
+    assert twice.stderr.strip().splitlines()[-1].endswith(
+        f"--run: {run_dir} already holds a run that finished at {_finished_at(run_dir)} env steps; add --resume to go "
+        f"on with it, or pick another --run name (or delete the directory to start that run again)"), twice.stderr
+    assert _fingerprint(run_dir) == before
+
     # Each component an orchestrator would start again says the same and writes nothing.
     for role, extra in (("learner", ["--hidden", "16", "16", "--learning-starts", "300", "--resume"]),
                         ("buffer", ["--expert-capacity", "1000", "--learning-starts", "300", "--resume"]),
@@ -62,6 +77,11 @@ def test_resume_of_a_finished_run_changes_nothing_and_exits_0(tmp_path, mode):
                    "--connect", f"tcp/127.0.0.1:{free_port()}", timeout=60)
         assert r.returncode == 0 and r.stdout.startswith(f"silcr {role}: run done already finished at "), \
             (role, r.stdout, r.stderr)
+    assert _fingerprint(run_dir) == before
+    for role in ("learner", "buffer"):  # started by hand without --resume: refused as the launcher refuses
+        r = _silcr(role, "--run", "done", "--runs-dir", str(runs), "--env", ENV, "--total-steps", "1500",
+                   "--connect", f"tcp/127.0.0.1:{free_port()}", timeout=60)
+        assert r.returncode == 2 and "already holds a run that finished" in r.stderr, (role, r.stdout, r.stderr)
     assert _fingerprint(run_dir) == before
 
     # A larger budget goes on from there, and the run is finished again at the new budget.
@@ -91,6 +111,12 @@ def test_a_run_stopped_midway_is_not_finished(tmp_path):
     runs = tmp_path / "runs"
     args = ["--run", "part", "--runs-dir", str(runs), "--single-process", *SMALL]
     assert _silcr("train", *args, "--total-steps", "1000").returncode == 0
+    (runs / "part" / "finished.json").unlink()  # as a run stopped midway leaves it: checkpoints, no marker
+    before = _fingerprint(runs / "part")
+    fresh = _silcr("train", *args, "--total-steps", "1800")
+    assert fresh.returncode == 2 and "already holds a run stopped midway (its checkpoints in " in fresh.stderr, \
+        fresh.stderr
+    assert _fingerprint(runs / "part") == before
     more = _silcr("train", *args, "--total-steps", "1800", "--resume")
     assert more.returncode == 0 and "already finished" not in more.stdout
     assert '"total_steps": 1800' in (runs / "part" / "finished.json").read_text()
@@ -118,3 +144,18 @@ def test_the_monitor_without_a_terminal_logs_plain_lines_and_ends_with_the_run(t
     assert len(figures) >= 3, monitor.stdout
     assert "\x1b[" not in monitor.stdout  # no terminal codes in a log
     assert "run watched finished at " in lines[-1] and "updates" in lines[-1], lines[-1]
+
+
+def test_the_python_api_refuses_a_run_name_whose_directory_holds_a_run(tmp_path):
+    from silcr import SILCR
+
+    opts = dict(hidden=(16, 16), learning_starts=300, expert_capacity=1000, batch_size=64, eval_interval=500,
+                eval_episodes=1, torch_threads=1)
+    with SILCR(ENV, run="named", runs_dir=str(tmp_path), **opts) as first:
+        first.learn(600)
+    before = _fingerprint(tmp_path / "named")
+    again = SILCR(ENV, run="named", runs_dir=str(tmp_path), **opts)
+    with pytest.raises(ValueError, match="already holds a run that finished at .* add --resume"):
+        again.learn(600)
+    again.close()
+    assert _fingerprint(tmp_path / "named") == before
