@@ -4,7 +4,7 @@ temporary file left behind. Before: the TensorBoard writer's thread raised ENOSP
 the launcher then crashed writing pids.json (exit 1 at 8,884 of 30,000 steps, a 0-byte .pids.json.tmp left).
 
 The disk stays full until the learner's stats (over Zenoh, off the disk) show a failed checkpoint and a progress row
-that could not be written, and at least 10 s: a fixed 30 s let a fast machine finish the whole budget on a full disk.
+that waits to be written (`records_waiting`), and at least 10 s: a fixed 30 s let a fast machine finish the whole budget on a full disk.
 
 Needs root (to mount the tmpfs); skipped with the reason otherwise.
 """
@@ -76,7 +76,7 @@ def test_a_run_whose_disk_fills_up_finishes_its_budget(small_disk, tmp_path):
         _fill(small_disk)
         filled = time.monotonic()
         wait_for(lambda: train.poll() is None and (s := stats.get(keys.stats_learner)) is not None
-                 and s["checkpoints_failed"] > 0 and s["records_failed"] > 0 or train.poll() is not None, 300,
+                 and s["checkpoints_failed"] > 0 and s["records_waiting"] > 0 or train.poll() is not None, 300,
                  "the learner to meet the full disk")
         assert train.poll() is None, "the run ended before the learner met the full disk: give it a larger budget"
         time.sleep(max(0.0, 10 - (time.monotonic() - filled)))
@@ -102,8 +102,11 @@ def test_a_run_whose_disk_fills_up_finishes_its_budget(small_disk, tmp_path):
     assert header == PROGRESS_COLUMNS and all(len(r) == len(header) for r in rows)
     steps = [int(r[header.index("env_steps")]) for r in rows]
     assert steps == sorted(steps) and steps[-1] >= total
-    # the rows of the evaluations made while the disk was full waited and were written: no gap in the schedule
-    assert max(b - a for a, b in zip(steps, steps[1:])) <= 1000, steps
+    # the rows of the evaluations made while the disk was full waited and were written: no hole in the schedule.
+    # Rows are about 500 env steps apart when the learner keeps pace; a catch-up after a stall (the TensorBoard
+    # writer reopened, acks held) stretched one gap to 1,093 here, so the hole looked for is over 2,000: the
+    # rows of the 10 s or more of full disk given up rather than held.
+    assert max(b - a for a, b in zip(steps, steps[1:])) <= 2000, steps
     assert len(rows) > full_rows
     assert max(int(r[header.index("checkpoints_failed")]) for r in rows) > 0
     leftovers = [p.name for p in run_dir.rglob("*") if ".tmp" in p.name]
