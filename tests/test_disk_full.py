@@ -4,7 +4,8 @@ temporary file left behind. Before: the TensorBoard writer's thread raised ENOSP
 the launcher then crashed writing pids.json (exit 1 at 8,884 of 30,000 steps, a 0-byte .pids.json.tmp left).
 
 The disk stays full until the learner's stats (over Zenoh, off the disk) show a failed checkpoint and a progress row
-that waits to be written (`records_waiting`), and at least 10 s: a fixed 30 s let a fast machine finish the whole budget on a full disk.
+that waits to be written (`records_waiting`), and at least 10 s: a fixed 30 s let a fast machine finish the whole
+budget on a full disk. Shown failing when held rows are given up instead: the learner never holds one back.
 
 Needs root (to mount the tmpfs); skipped with the reason otherwise.
 """
@@ -76,9 +77,9 @@ def test_a_run_whose_disk_fills_up_finishes_its_budget(small_disk, tmp_path):
         _fill(small_disk)
         filled = time.monotonic()
         wait_for(lambda: train.poll() is None and (s := stats.get(keys.stats_learner)) is not None
-                 and s["checkpoints_failed"] > 0 and s["records_waiting"] > 0 or train.poll() is not None, 300,
+                 and s.get("checkpoints_failed", 0) > 0 and s.get("records_waiting", 0) > 0 or train.poll() is not None, 300,
                  "the learner to meet the full disk")
-        assert train.poll() is None, "the run ended before the learner met the full disk: give it a larger budget"
+        assert train.poll() is None, "the run ended before the learner held a row back on the full disk"
         time.sleep(max(0.0, 10 - (time.monotonic() - filled)))
         full_rows = len((run_dir / "progress.csv").read_text().splitlines())
         (small_disk / "filler").unlink()
