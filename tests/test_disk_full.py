@@ -76,8 +76,8 @@ def test_a_run_whose_disk_fills_up_finishes_its_budget(small_disk, tmp_path):
                  and len((run_dir / "progress.csv").read_text().splitlines()) >= 4, 300, "a few rows and checkpoints")
         _fill(small_disk)
         filled = time.monotonic()
-        wait_for(lambda: train.poll() is None and (s := stats.get(keys.stats_learner)) is not None
-                 and s.get("checkpoints_failed", 0) > 0 and s.get("records_waiting", 0) > 0 or train.poll() is not None, 300,
+        wait_for(lambda: train.poll() is not None or ((s := stats.get(keys.stats_learner) or {})
+                 and s.get("checkpoints_failed", 0) > 0 and s.get("records_waiting", 0) > 0), 300,
                  "the learner to meet the full disk")
         assert train.poll() is None, "the run ended before the learner held a row back on the full disk"
         time.sleep(max(0.0, 10 - (time.monotonic() - filled)))
