@@ -13,6 +13,7 @@ handlers back afterwards where a launcher runs inside another program (`caller_s
 from __future__ import annotations
 
 import contextlib
+import faulthandler
 import logging
 import os
 import signal
@@ -44,6 +45,9 @@ class StopFlag:
 
         signal.signal(signal.SIGINT, handler)
         signal.signal(signal.SIGTERM, handler)
+        # `kill -USR1 <pid>` prints where every thread of a component is to its stderr (its log), and it goes on:
+        # what a component that stopped making progress is waiting on (docs/reliability.md).
+        faulthandler.register(signal.SIGUSR1, all_threads=True)
         return self
 
     def set(self, reason: str = "stop requested") -> None:

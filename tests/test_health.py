@@ -61,6 +61,14 @@ def test_the_probes_tell_a_stuck_component_from_a_running_one_and_a_joined_one_f
             assert r.returncode == 0 and "ok" in r.stdout and "visible" in r.stdout, r.stdout + r.stderr
         actor_token = json.loads(files["actor"].read_text())["token"]
         assert actor_token.startswith(f"silcr/{RUN}/alive/actor/")  # the random id it picked
+        # where a component is: SIGUSR1 prints every thread's stack to its log, and it goes on
+        actor = procs.procs["actor"]
+        actor.send_signal(signal.SIGUSR1)
+        wait_for(lambda: "in run_actor" in procs.log("actor"), 30, "the actor's stacks in its log")
+        assert "Current thread" in procs.log("actor") or "Thread 0x" in procs.log("actor")
+        beat = json.loads(files["actor"].read_text())["time"]
+        wait_for(lambda: json.loads(files["actor"].read_text())["time"] > beat, 30, "the actor's next heartbeat")
+        assert actor.poll() is None
         # a stuck buffer: its process stopped, its heartbeat ages; a liveness probe says so, and then it is fine again
         buffer.send_signal(signal.SIGSTOP)
         time.sleep(3)
