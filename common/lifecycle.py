@@ -77,7 +77,8 @@ class StopFlag:
 
 @contextlib.contextmanager
 def caller_signal_handlers() -> Iterator[None]:
-    """Whatever the block installs for SIGINT and SIGTERM, the caller's handlers come back after it.
+    """Whatever the block installs for SIGINT and SIGTERM (and SIGUSR1's stack dump), the caller's handlers come back
+    after it.
 
     A launcher also runs inside other programs (the Python API's caller, a test): a handler it
     leaves behind, or a SIGINT left ignored while it closed, would be inherited by the caller's
@@ -90,6 +91,7 @@ def caller_signal_handlers() -> Iterator[None]:
         for signum, handler in previous.items():
             # None: installed outside Python; the default is the closest Python can put back.
             signal.signal(signum, signal.SIG_DFL if handler is None else handler)
+        faulthandler.unregister(signal.SIGUSR1)  # the stack dump `install_signal_handlers` set; the caller's action back
 
 
 def ignore_stop_signals() -> None:

@@ -1,5 +1,6 @@
 from __future__ import annotations
 
+import faulthandler
 import signal
 
 import numpy as np
@@ -36,3 +37,5 @@ def signal_handlers_left_as_found():
         signal.signal(signum, before[signum])  # the next test starts clean either way
     changed = {signal.Signals(s).name: (before[s], after[s]) for s in before if after[s] != before[s]}
     assert not changed, f"the test left signal handlers changed (before, after): {changed}"
+    # nor a stack dump on SIGUSR1 (a component's, `StopFlag.install_signal_handlers`) in the caller's process
+    assert not faulthandler.unregister(signal.SIGUSR1), "the test left SIGUSR1 dumping stacks (faulthandler)"
