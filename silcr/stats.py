@@ -89,7 +89,7 @@ def _iqm(metrics):
     return lambda scores: np.array([metrics.aggregate_iqm(scores)])
 
 
-def _estimates(rly, scores: dict, func, reps: int, seed: int) -> tuple[dict, dict]:
+def interval_estimates(rly, scores: dict, func, reps: int, seed: int) -> tuple[dict, dict]:
     """rliable's interval estimates, one key at a time, each from the same draws. rliable's
     StratifiedBootstrap takes `random_state` but draws its indices from NumPy's global generator
     (`np.random.choice`), so without this an interval would depend on every estimate made before
@@ -133,7 +133,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
     for env in envs:
         for label in sorted(groups[env], key=label_key):
             scores = _final(groups[env][label], final_evals)
-            point, interval = _estimates(rly, {label: scores[:, None]}, iqm, reps, seed)
+            point, interval = interval_estimates(rly, {label: scores[:, None]}, iqm, reps, seed)
             per_task[env][label] = (float(point[label][0]), interval[label][:, 0])
             lines.append(f"| {env} | {label} | {len(scores)} | {_ci(*per_task[env][label], len(scores))} |")
 
@@ -153,7 +153,7 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
                 columns.append((_final(groups[env][label], final_evals) - zero) / (one - zero if one != zero else 1.0))
             n = min(len(c) for c in columns)  # rliable wants runs x tasks: the fewest seeds any task has
             normalised[label] = np.stack([c[:n] for c in columns], axis=1)
-        points, intervals = _estimates(rly, normalised, iqm, reps, seed)
+        points, intervals = interval_estimates(rly, normalised, iqm, reps, seed)
         for label in complete:
             runs_per_task = normalised[label].shape[0]
             lines.append(f"| {label} | {runs_per_task} | {_ci(points[label][0], intervals[label][:, 0], runs_per_task)} |")
@@ -173,14 +173,14 @@ def _report(runs: list[RunCurve], compare: str | None, reference: str | None, re
                     continue
                 pair = {other: (_final(groups[env][compare], final_evals)[:, None],
                                 _final(groups[env][other], final_evals)[:, None])}
-                points, intervals = _estimates(rly, pair, metrics.probability_of_improvement, reps, seed)
+                points, intervals = interval_estimates(rly, pair, metrics.probability_of_improvement, reps, seed)
                 lines.append(f"| {env} | {other} | "
                              f"{_pair_ci(float(points[other]), intervals[other][:, 0], pair[other], (compare, other))} |")
         if compare in normalised:
             for other in others:
                 if other in normalised:
                     pair = {other: (normalised[compare], normalised[other])}
-                    points, intervals = _estimates(rly, pair, metrics.probability_of_improvement, reps, seed)
+                    points, intervals = interval_estimates(rly, pair, metrics.probability_of_improvement, reps, seed)
                     lines.append(f"| all {_tasks(len(envs))} | {other} | "
                                  f"{_pair_ci(float(points[other]), intervals[other][:, 0], pair[other], (compare, other))} |")
     if figure is not None:
@@ -209,7 +209,7 @@ def _profile_figure(rly, normalised: dict[str, np.ndarray], out: Path, reps: int
     high = max(1.5, float(max(np.max(v) for v in normalised.values())))
     taus = np.linspace(min(0.0, float(min(np.min(v) for v in normalised.values()))), high, 101)
     state = np.random.get_state()
-    np.random.seed(seed)  # rliable's bootstrap draws from the global generator (see _estimates)
+    np.random.seed(seed)  # rliable's bootstrap draws from the global generator (see interval_estimates)
     try:
         profiles, bands = rly.create_performance_profile({k: normalised[k] for k in labels}, taus, reps=reps)
     finally:
@@ -326,7 +326,7 @@ def _against(runs: list[RunCurve], setting: str, reps: int, seed: int, figure: P
             estimates[env][family] = []
             for value in sorted(cells[env][family]):
                 scores = _final(cells[env][family][value], final_evals)
-                point, interval = _estimates(rly, {"x": scores[:, None]}, iqm, reps, seed)
+                point, interval = interval_estimates(rly, {"x": scores[:, None]}, iqm, reps, seed)
                 estimates[env][family].append((value, float(point["x"][0]), interval["x"][:, 0], scores))
                 own_budget = float(cells[env][family][value][0].config["total_steps"]) if ratio else 0.0  # one per family
                 lines.append(f"| {env} | {family} | {value:g} |" + (f" {own_budget / value:g} |" if ratio else "")
