@@ -35,7 +35,7 @@ def test_the_rule_gives_the_figures_silcr_plot_gave(tmp_path):
     assert r.returncode == 0, r.stderr
     line = next(x for x in r.stdout.splitlines() if x.startswith("| silcr-bc |"))
     assert "| 0.44 [0.17, 0.83] | 0.50 [0.11, 0.83] | no (undecided) | 3 of 3 seeds |" in line
-    assert "| silcr-de4x | 0 of 6 cells finished |" in r.stdout
+    assert "| silcr-de4x | 0 of 6 cells finished | | | | 0.00 h |" in r.stdout
     assert "waits for every arm's cells (1 of 5 arms complete)" in r.stdout
 
     # A cell without the sweep's done marker is still running (or stopped): it does not count.
