@@ -27,12 +27,13 @@ from __future__ import annotations
 
 import json
 import logging
+import tomllib
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 from silcr.common import run_layout
 from silcr.common.atomic_file import write_atomic
-from silcr.common.config import Config, ConfigError
+from silcr.common.config import Config, ConfigError, absent_values, option_name
 
 log = logging.getLogger("run_end")
 
@@ -74,8 +75,18 @@ def read(run_dir: Path) -> Finished | None:
         return None
 
 
+class RunHeld(ConfigError):
+    """A new run refused (on --run) because its directory holds one; `held` says what, in words. The message is the
+    command line's; the Python API words its own, as `resume` is not one of its options."""
+
+    def __init__(self, run_dir: Path, held: str) -> None:
+        super().__init__("--run", f"{run_dir} already holds {held}; add --resume to go on with it, or pick another "
+                                  f"--run name (or delete the directory to start that run again)")
+        self.run_dir, self.held = run_dir, held
+
+
 def check_new(cfg: Config) -> None:
-    """Raise ConfigError (on --run) when `cfg` starts a new run, without --resume, in a directory that holds one."""
+    """Raise RunHeld when `cfg` starts a new run, without --resume, in a directory that holds one."""
     if cfg.resume:
         return
     run_dir, done = Path(cfg.run_dir), read(Path(cfg.run_dir))
@@ -85,8 +96,35 @@ def check_new(cfg: Config) -> None:
         held = f"a run stopped midway (its checkpoints in {run_layout.checkpoints(run_dir)})"
     else:
         return
-    raise ConfigError("--run", f"{run_dir} already holds {held}; add --resume to go on with it, or pick another "
-                               f"--run name (or delete the directory to start that run again)")
+    raise RunHeld(run_dir, held)
+
+
+#: What a run is of: its checkpoints hold these networks and episodes, and `silcr plot` labels its records by them.
+#: A --resume that names other values (the command without the run's options, whose defaults are another run's) would
+#: rewrite the run's config.toml before a checkpoint refused to load, or go on as another experiment under its name.
+RUN_IDENTITY = ("env", "algo", "reward", "hidden", "critic_norm")
+
+
+def check_same_run(cfg: Config) -> None:
+    """Raise ConfigError (on the first option that differs) when a --resume names another run than the one its
+    directory's config.toml says it holds; before anything is written."""
+    if not cfg.resume:
+        return
+    path = run_layout.config(Path(cfg.run_dir))
+    try:
+        saved = absent_values() | tomllib.loads(path.read_text())
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
+        return  # none yet (a run stopped before its launcher wrote it), or unreadable: the resume writes the options given
+    given = cfg.to_dict()
+
+    def same(a, b) -> bool:
+        return list(a) == list(b) if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) else a == b
+
+    for key in RUN_IDENTITY:
+        if not same(saved[key], given[key]):
+            raise ConfigError(option_name(key), f"{cfg.run_dir} holds a run with {key} = {saved[key]!r}, not "
+                                                f"{given[key]!r}; --resume goes on with the run's own options: give "
+                                                f"them again, or add --config {path} (the command line wins)")
 
 
 def target_updates(cfg: Config) -> int:

@@ -5,7 +5,8 @@ process with `--single-process`, else as a router, a buffer service, a learner a
 in processes of their own (`local.run_train`). Before anything starts it takes the run
 directory (one run per directory: `run_lock`) and, for a distributed run, checks that the
 router's port is free, and without `--resume` that the directory holds no run already
-(`run_end.check_new`); each refusal raises before a file is written. With `--resume` on a run whose
+(`run_end.check_new`), with it that the options name the run it holds (`run_end.check_same_run`: env,
+algorithm, reward, networks); each refusal raises before a file is written. With `--resume` on a run whose
 budget is spent it writes nothing at all: one line, and exit code 0 (`common/run_end.py`).
 
 `run_directory(cfg)` is what every way of training holds for a run's life (this `train`, and the
@@ -25,7 +26,7 @@ from typing import Any, Callable, Iterator
 
 from silcr.common import run_layout
 from silcr.common.config import Config, ConfigError
-from silcr.common.run_end import check_new
+from silcr.common.run_end import check_new, check_same_run
 from silcr.common.run_lock import check_free, hold
 from silcr.deploy.console import RunEnd, report_end
 
@@ -74,6 +75,7 @@ def run_directory(cfg: Config) -> Iterator[None]:
     and `cfg` saved as config.toml (saved again by a caller that raises the budget)."""
     check_free(cfg.run_dir)  # a live run is said first: it is the likelier reason
     check_new(cfg)  # without --resume, a run is never started over another (common/run_end.py)
+    check_same_run(cfg)  # with it, the run the directory holds, not another under its name
     with hold(cfg.run_dir):  # one run directory, one run
         run_layout.logs(cfg.run_dir).mkdir(parents=True, exist_ok=True)
         cfg.save(run_layout.config(cfg.run_dir))

@@ -29,8 +29,17 @@ COMPONENT_LOGGERS = ("train", "learner", "buffer", "actor", "clients", "protocol
 RowCallback = Callable[[dict[str, Any]], bool]
 
 
+def _held_for_python(e) -> ValueError:
+    """`run_end.RunHeld` as an API user acts on it: `resume` is not a Python option (the next `learn` of the same
+    model goes on by itself), so a run held from before is either another name's or the command line's to go on."""
+    return ValueError(f"run: {e.run_dir} already holds {e.held}; pick another run name (or delete the directory "
+                      f"to start that run again), or go on with it from the command line: silcr train --config "
+                      f"{run_layout.config(e.run_dir)} --resume")
+
+
 class InProcessTraining:
     def __init__(self, cfg: Config) -> None:
+        from silcr.common.run_end import RunHeld
         from silcr.common.run_lock import RunInUse
         from silcr.deploy.launch import run_directory
         from silcr.deploy.single_process import ResumeError, SingleProcessRun
@@ -41,6 +50,8 @@ class InProcessTraining:
             self._held.enter_context(run_directory(cfg))  # the launcher's, as `silcr train` holds it
         except RunInUse as e:
             raise RuntimeError(str(e)) from None
+        except RunHeld as e:
+            raise _held_for_python(e) from None
         try:
             with self.component_logs():
                 self.run = SingleProcessRun(cfg)
@@ -140,6 +151,7 @@ class DistributedTraining:
         stops and checkpoints); its exception does too, and is raised; a real Ctrl-C raises KeyboardInterrupt
         once they have stopped."""
         from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT
+        from silcr.common.run_end import RunHeld
         from silcr.common.run_lock import RunInUse
         from silcr.deploy.console import StaleCheckpoints
         from silcr.deploy.launch import run_to_end
@@ -156,6 +168,8 @@ class DistributedTraining:
         try:
             with quiet:
                 code, stale = run_to_end(self.cfg, told if on_row is not None else None, who="silcr learn")
+        except RunHeld as e:
+            raise _held_for_python(e) from None
         except (RunInUse, ConfigError) as e:
             raise RuntimeError(str(e)) from None
         except KeyboardInterrupt:  # Ctrl-C before the launcher took it over

@@ -69,6 +69,23 @@ def test_resume_of_a_finished_run_changes_nothing_and_exits_0(tmp_path, mode):
         f"on with it, or pick another --run name (or delete the directory to start that run again)"), twice.stderr
     assert _fingerprint(run_dir) == before
 
+    # A --resume that names another run (the command without the run's options: Hopper-v5's defaults; other
+    # networks) with a budget still to spend is refused on the option that differs, before config.toml is rewritten
+    # (it was: then the buffer's checkpoint refused to load, and the run's config said Hopper-v5).
+    bare = ["--run", "done", "--runs-dir", str(runs), "--total-steps", "3000", "--resume"]
+    for extra, option, held in (([], "--env", f"env = '{ENV}', not 'Hopper-v5'"),
+                                (["--env", ENV, "--hidden", "32", "32"], "--hidden", "hidden = [16, 16], not [32, 32]")):
+        other = _silcr("train", *bare, *extra)
+        assert other.returncode == 2 and "Traceback" not in other.stderr, other.stderr
+        assert other.stderr.strip().splitlines()[-1] == (
+            f"silcr train: error: {option}: {run_dir} holds a run with {held}; --resume goes on with the run's own "
+            f"options: give them again, or add --config {run_dir / 'config.toml'} (the command line wins)")
+        assert _fingerprint(run_dir) == before
+    # What that line offers: the run's own config.toml names it.
+    own = _silcr("train", "--config", str(run_dir / "config.toml"), "--resume")
+    assert own.returncode == 0 and "already finished at " in own.stdout, (own.stdout, own.stderr)
+    assert _fingerprint(run_dir) == before
+
     # Each component an orchestrator would start again says the same and writes nothing.
     for role, extra in (("learner", ["--hidden", "16", "16", "--learning-starts", "300", "--resume"]),
                         ("buffer", ["--expert-capacity", "1000", "--learning-starts", "300", "--resume"]),
@@ -154,8 +171,14 @@ def test_the_python_api_refuses_a_run_name_whose_directory_holds_a_run(tmp_path)
     with SILCR(ENV, run="named", runs_dir=str(tmp_path), **opts) as first:
         first.learn(600)
     before = _fingerprint(tmp_path / "named")
+    # In the API's words: `resume` is not one of its options, so the refusal says what an API user can do.
+    go_on = f"pick another run name .* silcr train --config {tmp_path / 'named' / 'config.toml'} --resume"
     again = SILCR(ENV, run="named", runs_dir=str(tmp_path), **opts)
-    with pytest.raises(ValueError, match="already holds a run that finished at .* add --resume"):
+    with pytest.raises(ValueError, match=f"^run: .*already holds a run that finished at .*{go_on}$"):
         again.learn(600)
     again.close()
+    distributed = SILCR(ENV, run="named", runs_dir=str(tmp_path), actors=1, **opts)  # refused before a process starts
+    with pytest.raises(ValueError, match=f"^run: .*already holds a run that finished at .*{go_on}$"):
+        distributed.learn(600)
+    distributed.close()
     assert _fingerprint(tmp_path / "named") == before
