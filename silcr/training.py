@@ -22,6 +22,7 @@ from typing import Any, Callable
 from silcr.common import protocol as P
 from silcr.common import run_layout
 from silcr.common.config import Config, ConfigError
+from silcr.common.run_end import RunHeld
 
 #: The components' loggers, written to <run dir>/logs/single-process.log while an actors=0 model learns.
 COMPONENT_LOGGERS = ("train", "learner", "buffer", "actor", "clients", "protocol", "mujoco")
@@ -29,7 +30,7 @@ COMPONENT_LOGGERS = ("train", "learner", "buffer", "actor", "clients", "protocol
 RowCallback = Callable[[dict[str, Any]], bool]
 
 
-def _held_for_python(e) -> ValueError:
+def _held_for_python(e: RunHeld) -> ValueError:
     """`run_end.RunHeld` as an API user acts on it: `resume` is not a Python option (the next `learn` of the same
     model goes on by itself), so a run held from before is either another name's or the command line's to go on."""
     return ValueError(f"run: {e.run_dir} already holds {e.held}; pick another run name (or delete the directory "
@@ -39,7 +40,6 @@ def _held_for_python(e) -> ValueError:
 
 class InProcessTraining:
     def __init__(self, cfg: Config) -> None:
-        from silcr.common.run_end import RunHeld
         from silcr.common.run_lock import RunInUse
         from silcr.deploy.launch import run_directory
         from silcr.deploy.single_process import ResumeError, SingleProcessRun
@@ -151,7 +151,6 @@ class DistributedTraining:
         stops and checkpoints); its exception does too, and is raised; a real Ctrl-C raises KeyboardInterrupt
         once they have stopped."""
         from silcr.common.lifecycle import EXIT_STALE_CHECKPOINT
-        from silcr.common.run_end import RunHeld
         from silcr.common.run_lock import RunInUse
         from silcr.deploy.console import StaleCheckpoints
         from silcr.deploy.launch import run_to_end
