@@ -51,7 +51,8 @@ class Cell:
     wall_s: float
 
 
-def _last(path: Path, metric: str) -> np.ndarray | None:
+def _column(path: Path, metric: str) -> np.ndarray | None:
+    """progress.csv's values of `metric`, resumed stretches' superseded rows left out; None when it has none."""
     try:
         return load_run(path, metric).returns
     except ValueError:
@@ -59,13 +60,16 @@ def _last(path: Path, metric: str) -> np.ndarray | None:
 
 
 def read_cell(path: Path) -> Cell | None:
+    """A finished cell's figures; None while it has no done marker; ValueError naming a record it cannot read."""
     if not (path / "sweep-done.json").is_file():
         return None
     run = load_run(path)
-    lowest = _last(path, "expert_min_return")[-1]
-    velocity = _last(path, "eval_x_velocity")
+    lowest, lengths = _column(path, "expert_min_return"), _column(path, "eval_length")
+    if lowest is None or lengths is None:
+        raise ValueError(f"{path}: progress.csv has no expert_min_return or eval_length values")
+    velocity = _column(path, "eval_x_velocity")  # None: a run from before the column
     last_five = float(np.mean(run.returns[-LAST:]))
-    return Cell(float(run.returns[-1]), last_five, last_five / lowest, float(np.mean(_last(path, "eval_length")[-LAST:])),
+    return Cell(float(run.returns[-1]), last_five, last_five / lowest[-1], float(np.mean(lengths[-LAST:])),
                 None if velocity is None else float(np.mean(velocity[-LAST:])), run.wall_s or 0.0)
 
 
@@ -159,7 +163,10 @@ def main() -> None:
     for option, root in (("--control", args.control), ("--screen", args.screen)):
         if not root.is_dir():
             parser.error(f"{option} {root}: no such directory")
-    print(report(args.control, args.screen), end="")
+    try:
+        print(report(args.control, args.screen), end="")
+    except ValueError as e:  # a record that cannot be read: one line naming it
+        parser.error(str(e))
 
 
 if __name__ == "__main__":

@@ -44,6 +44,11 @@ def test_the_rule_gives_the_figures_silcr_plot_gave(tmp_path):
     assert "| silcr-bc | 5 of 6 cells finished |" in r.stdout
     assert "| Hopper-v5 | silcr-bc | 2 | 2,593, 1,085 |" in r.stdout
 
+    (screen / "silcr-bc_Hopper-v5_s2" / "progress.csv").write_text("time,env_steps\n")  # a cut record
+    r = _run("--screen", str(screen))
+    assert r.returncode == 2 and "silcr-bc_Hopper-v5_s2: progress.csv has no values of eval_return" in r.stderr, r.stderr
+    assert "Traceback" not in r.stderr
+
     r = _run("--screen", str(tmp_path / "nowhere"))
     assert r.returncode == 2 and "--screen" in r.stderr and "no such directory" in r.stderr and "Traceback" not in r.stderr
 
