@@ -241,6 +241,12 @@ def absent_values() -> dict[str, Any]:
     return {name: value_when_absent(name) for name in FIELDS}
 
 
+def saved_options(path: Path) -> dict[str, Any]:
+    """A run's config.toml (as `Config.save` wrote it) with `absent_values` laid under: an option added since reads as
+    what the run did. Reading and parsing errors (OSError, TOMLDecodeError, UnicodeDecodeError) are the caller's."""
+    return absent_values() | tomllib.loads(Path(path).read_text())
+
+
 def option_name(name: str) -> str:
     return "--" + name.replace("_", "-")
 

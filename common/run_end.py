@@ -33,7 +33,7 @@ from pathlib import Path
 
 from silcr.common import run_layout
 from silcr.common.atomic_file import write_atomic
-from silcr.common.config import Config, ConfigError, absent_values, option_name
+from silcr.common.config import Config, ConfigError, option_name, saved_options
 
 log = logging.getLogger("run_end")
 
@@ -112,16 +112,12 @@ def check_same_run(cfg: Config) -> None:
         return
     path = run_layout.config(Path(cfg.run_dir))
     try:
-        saved = absent_values() | tomllib.loads(path.read_text())
+        saved = saved_options(path)
     except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError):
         return  # none yet (a run stopped before its launcher wrote it), or unreadable: the resume writes the options given
-    given = cfg.to_dict()
-
-    def same(a, b) -> bool:
-        return list(a) == list(b) if isinstance(a, (list, tuple)) and isinstance(b, (list, tuple)) else a == b
-
+    given = cfg.to_dict()  # checked options: a list option is a list here, as in the file
     for key in RUN_IDENTITY:
-        if not same(saved[key], given[key]):
+        if saved[key] != given[key]:
             raise ConfigError(option_name(key), f"{cfg.run_dir} holds a run with {key} = {saved[key]!r}, not "
                                                 f"{given[key]!r}; --resume goes on with the run's own options: give "
                                                 f"them again, or add --config {path} (the command line wins)")

@@ -26,7 +26,7 @@ import numpy as np
 
 from silcr.common import run_layout
 from silcr.common.algorithms import ALGORITHM_OPTIONS, ALGORITHMS
-from silcr.common.config import Config, absent_values
+from silcr.common.config import Config, saved_options
 
 
 @dataclass
@@ -86,7 +86,7 @@ def load_run(path: Path, metric: str = "eval_return") -> RunCurve:
     try:
         # A run from before an option existed did what the option did when it was added (options
         # are added keeping the behaviour they replace), so a missing key reads as that value.
-        cfg = absent_values() | tomllib.loads(run_layout.config(path).read_text())
+        cfg = saved_options(run_layout.config(path))
         with open(run_layout.progress(path), newline="") as f:
             all_rows = list(csv.DictReader(f))
     except FileNotFoundError as e:
