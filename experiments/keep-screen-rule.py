@@ -22,14 +22,13 @@ Only finished cells count (those with the sweep's sweep-done.json).
 from __future__ import annotations
 
 import argparse
-import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
 from silcr.common.run_records import load_run
-from silcr.stats import REPS, interval_estimates, require_rliable
+from silcr.stats import REPS, interval_estimates, quiet_bootstrap, require_rliable
 
 REPO = Path(__file__).resolve().parent.parent
 CONTROL = "silcr-layernorm-clip"
@@ -112,8 +111,7 @@ def report(control_root: Path, screen_root: Path) -> str:
             done = sum(len(arms[arm][task]) for task in TASKS)
             lines.append(f"| {arm} | {done} of {len(TASKS) * len(SEEDS)} cells finished | | | | {hours:.2f} h |")
             continue
-        with warnings.catch_warnings():  # arch's deprecation of random_state, once per estimate (see silcr.stats)
-            warnings.filterwarnings("ignore", category=FutureWarning, module=r"arch\.")
+        with quiet_bootstrap():
             p[arm] = {field: p_over_control(rly, metrics, control, arms[arm], field) for field in ("last", "last_five")}
         helps = all(p[arm][field][1] > 0.5 for field in p[arm])
         walker = [c.keep for c in arms[arm]["Walker2d-v5"]]

@@ -47,7 +47,7 @@ def require_rliable():
 
 
 @contextmanager
-def _quiet_bootstrap():
+def quiet_bootstrap():
     """rliable hands `random_state` to arch's bootstrap, which warns on every call that the
     argument is deprecated: a line per estimate on the user's screen that says nothing about
     their runs. The draws are the same either way."""
@@ -115,7 +115,7 @@ def default_reference(labels: set[str]) -> str | None:
 def rliable_report(runs: list[RunCurve], compare: str | None = None, reference: str | None = None,
                    reps: int = REPS, seed: int = 0, figure: Path | None = None, final_evals: int = 1) -> str:
     """The Markdown report (and, with `figure`, an interval plot) described in the module docstring."""
-    with _quiet_bootstrap():
+    with quiet_bootstrap():
         return _report(runs, compare, reference, reps, seed, figure, final_evals)
 
 
@@ -302,7 +302,7 @@ def families(runs: list[RunCurve], setting: str) -> list[str]:
 def against_report(runs: list[RunCurve], setting: str, reps: int = REPS, seed: int = 0, figure: Path | None = None,
                    final_evals: int = 1) -> str:
     """The final return against `setting`: a Markdown table and, with `figure`, one panel per task."""
-    with _quiet_bootstrap():
+    with quiet_bootstrap():
         return _against(runs, setting, reps, seed, figure, final_evals)
 
 
