@@ -5,7 +5,9 @@ durably (docs/reliability.md, "What confirmed means"). What is due to be sent (`
 never sent; those from a gap the buffer asked for again (`resend_from` in an ack; one ask per gap,
 since the refusals of what was in flight behind it repeat it for a moment); and, as a probe whose
 answer says what is missing, the oldest one when a buffer comes back after none listened or when no
-ack has come for `ack_timeout` seconds (doubled while none comes, up to MAX_ACK_TIMEOUT_S). The
+ack has come for `ack_timeout` seconds (doubled while none comes, up to MAX_ACK_TIMEOUT_S). A stepping
+actor's next episodes show the buffer any gap behind the probe; a stopping actor sends none, so once it
+`hurry`s, a timeout sends everything unconfirmed again (the buffer drops what it already holds). The
 bound is in bytes; the outbox always takes one episode, however large. The Zenoh end that sends
 and hears the acks is `episode_channel.ZenohEpisodeWriter`.
 """
@@ -49,6 +51,7 @@ class Outbox:
         self._rewound, self._rewound_at = -1, -math.inf  # the last such ask taken, and when
         self._base_timeout = self._timeout = ack_timeout
         self._last_progress = time.monotonic()
+        self._stopping = False  # set by `hurry`: a timeout sends everything unconfirmed again, not one probe
         self.confirmed = self.sent = self.resent = self.rewinds = self.acks = 0
 
     def __len__(self) -> int:
@@ -107,7 +110,11 @@ class Outbox:
                 # Doubled while acks do not come; a buffer that is back starts the clock afresh.
                 self._timeout = self._base_timeout if buffer_came_back else min(2 * self._timeout, MAX_ACK_TIMEOUT_S)
                 self._last_progress = now
-                if oldest < self._next:
+                if self._stopping and oldest < self._next:
+                    # Lost behind the probe and nothing after it to show the gap: all of it again, now.
+                    self._next = oldest
+                    self.rewinds += 1
+                elif oldest < self._next:
                     due.append(self._episodes[oldest])
             due += [ep for seq, ep in self._episodes.items() if seq >= self._next]
         for ep in due:
@@ -121,8 +128,10 @@ class Outbox:
         self._sent_upto = max(self._sent_upto, ep.seq + 1)
 
     def hurry(self, ack_timeout: float) -> None:
-        """Probe at least every `ack_timeout` s from now on (a stopping actor has no time to back off)."""
+        """The actor stops: send everything unconfirmed again after each `ack_timeout` s without an ack (it
+        has no time to back off, nor new episodes whose arrival would show the buffer a gap)."""
         self._base_timeout = self._timeout = min(self._timeout, ack_timeout)
+        self._stopping = True
 
     def give_up(self) -> tuple[int, int, int] | None:
         """Empty the outbox (the actor stops); (how many, first seq, last seq) it held, or None."""

@@ -25,6 +25,15 @@ _ACTOR_END = re.compile(r"stopping \(.*\): \d+ episodes, \d+ steps; (\d+) episod
 _BUFFER_END = re.compile(r"buffer stopping \(.*\): (\d+) episodes, \d+ transitions received, (\d+) rejected, (\d+) missing")
 
 
+def _caught_up(history: list[dict], since: float) -> bool:
+    """Whether the buffer's stats say it holds and has confirmed all it was sent: its last two stats messages
+    (a new one each `stats_interval`, 1 s: reading the latest more often reads the same message again) were
+    published after `since`, with nothing waiting in its inbox or to be acked, and the same count of episodes."""
+    last = [b for b in history[-2:] if b["time"] > since]
+    return len(last) == 2 and all(b["inbox_episodes"] == 0 and b["acks_waiting"] == 0 for b in last) \
+        and last[0]["episodes_received"] == last[1]["episodes_received"]
+
+
 @pytest.mark.skipif(bool(why_not_namespaces()), reason=str(why_not_namespaces()))
 @pytest.mark.skipif(shutil.which("iptables") is None, reason="iptables is not installed")
 def test_an_actor_whose_link_is_cut_for_20_s_loses_no_episode(tmp_path):
@@ -55,7 +64,6 @@ def test_an_actor_whose_link_is_cut_for_20_s_loses_no_episode(tmp_path):
                 return stats.get(key) or {}
 
             wait_for(lambda: get(keys.stats_learner).get("updates", 0) > 20, 180, "training with the actor's episodes")
-            before = get(keys.stats_actor(1))["episodes_written"]
             # The cable cut somewhere on the way: the actor's interface stays up, every packet to or from the
             # hub is dropped (a link set down instead fails the actor's sends at once, and it stops stepping).
             # First a bad link (a fifth of the packets lost both ways, as the issue's operator did), then none.
@@ -69,16 +77,19 @@ def test_an_actor_whose_link_is_cut_for_20_s_loses_no_episode(tmp_path):
             # Back (Zenoh reconnects by itself, within seconds to half a minute): what it finished meanwhile is
             # sent again where needed and confirmed, and it goes on.
             healed = time.time()
-            wait_for(lambda: (a := get(keys.stats_actor(1))).get("time", 0) > healed + 5
-                     and a.get("episodes_written", 0) > before + 20, 180,
+            # Zenoh may take half a minute to notice the old link is gone and open a new one: confirmations
+            # counted since a stats message sent well after the cut ended show the new link carries episodes and acks.
+            after = wait_for(lambda: (a := get(keys.stats_actor(1))).get("time", 0) > healed + 5 and a, 60,
+                             "the actor's stats after the cut")
+            wait_for(lambda: get(keys.stats_actor(1)).get("episodes_written", 0) > after["episodes_written"] + 20, 180,
                      "the actor's episodes to be confirmed again after the cut")
             actor = get(keys.stats_actor(1))
             # Unthrottled, the actor sends faster than the buffer stores; let the buffer catch up (the actor
             # held still for less than Zenoh's lease), so that its last episodes are confirmed as it stops.
             procs.procs["actor"].send_signal(signal.SIGSTOP)
-            counts = []
-            wait_for(lambda: counts.append(get(keys.stats_buffer).get("episodes_received")) or counts[-1] == counts[-4:][0]
-                     and len(counts) > 3, 30, "the buffer to store what the actor sent", interval=0.3)
+            stopped = time.time()
+            wait_for(lambda: _caught_up(stats.history.get(keys.stats_buffer, []), stopped), 60,
+                     "the buffer to store and confirm what the actor sent", interval=0.2)
             procs.procs["actor"].send_signal(signal.SIGCONT)
             procs.procs["actor"].send_signal(signal.SIGINT)
             assert procs.procs["actor"].wait(60) == 0
@@ -96,8 +107,9 @@ def test_an_actor_whose_link_is_cut_for_20_s_loses_no_episode(tmp_path):
                   f"{buffer['episodes_duplicate']} duplicates and refused {buffer['episodes_out_of_order']} after a gap")
         except AssertionError as e:
             logs = "".join(f"\n--- {n}.log ---\n{procs.log(n)[-1500:]}" for n in ("actor", "router", "buffer"))
+            # The stats first: what shows the failure's cause is often in them, and a long log gets cut.
             latest = {k: stats.get(k) for k in (keys.stats_actor(1), keys.stats_buffer)} if session else {}
-            raise AssertionError(f"{e}{logs}\n--- latest stats ---\n{latest}") from None
+            raise AssertionError(f"{e}\n--- latest stats ---\n{latest}{logs}") from None
         finally:
             if session is not None:
                 session.close()

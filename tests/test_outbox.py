@@ -51,6 +51,22 @@ def test_a_buffer_back_or_a_silent_one_gets_the_oldest_episode_as_a_probe():
     assert not outbox.anything_due(time.monotonic())
 
 
+def test_a_stopping_actor_sends_everything_unconfirmed_again_when_no_ack_comes():
+    # The last episodes sent before a link dropped were lost, and a stopping actor sends no new one whose arrival
+    # would show the buffer the gap: a probe would get back one episode per timeout, too few before it stops.
+    outbox = Outbox(ack_timeout=60)
+    _fill(outbox, range(5))
+    assert _send(outbox) == [0, 1, 2, 3, 4]
+    outbox.take_ack(P.EpisodeAck(0, 0, confirmed=1))
+    outbox.hurry(0.05)
+    assert _send(outbox) == []  # it waits for the ack first
+    time.sleep(0.1)
+    assert _send(outbox) == [2, 3, 4]
+    assert outbox.stats()["episodes_resent"] == 3 and outbox.stats()["resend_rounds"] == 1
+    outbox.take_ack(P.EpisodeAck(0, 0, confirmed=4))
+    assert len(outbox) == 0
+
+
 def test_the_outbox_is_full_at_its_bound_but_always_takes_one_episode():
     one = ep_bytes(make_episode(4))
     outbox = Outbox(limit_bytes=2 * one + 1)
