@@ -319,8 +319,9 @@ def load_environ(environ: Mapping[str, str], role: str) -> dict[str, Any]:
 
 
 def resolve(args: argparse.Namespace, role: str, environ: Mapping[str, str] | None = None) -> Config:
-    """Defaults < TOML file < SILCR_* environment variables < command line, then validate: each source's values
-    in their ranges (a bad value is refused even where a later source overrides it), then the result."""
+    """Defaults < (for `silcr train --resume`, the run's config.toml) < TOML file < SILCR_* environment variables
+    < command line, then validate: each source's values in their ranges (a bad value is refused even where a later
+    source overrides it), then the result."""
     values: dict[str, Any] = {}
     if getattr(args, "config", None):
         from_file = load_toml(args.config, role)
@@ -332,7 +333,35 @@ def resolve(args: argparse.Namespace, role: str, environ: Mapping[str, str] | No
     for name in FIELDS:
         if name in vars(args):
             values[name] = getattr(args, name)
+    if role == "train" and values.get("resume"):
+        values = resumed_run_options(values) | values
     return _checked(values, role)
+
+
+#: What `silcr train --resume` does not take from the run's config.toml: where the run is (nor an option since removed).
+_NOT_RESUMED = frozenset({"run", "runs_dir", "resume"})
+
+
+def resumed_run_options(given: Mapping[str, Any]) -> dict[str, Any]:
+    """The options of the run a `silcr train --resume` names (`given`: by the command line, --config or SILCR_*),
+    from its config.toml, for what is not given again (a forgotten --total-steps was a 2M budget that reopened a
+    finished 300k run); none without a --run name (a new default name) or a file."""
+    if not given.get("run"):
+        return {}
+    path = Path(given.get("runs_dir", default_of("runs_dir"))) / given["run"] / "config.toml"
+    try:
+        saved = tomllib.loads(path.read_text())
+    except FileNotFoundError:
+        return {}
+    except (OSError, tomllib.TOMLDecodeError, UnicodeDecodeError) as e:
+        raise ConfigError("--resume", f"{path} cannot be read ({e}); give the run's options with --config "
+                                      f"or on the command line, or repair the file") from None
+    out: dict[str, Any] = {}
+    for key, value in saved.items():
+        if key in FIELDS and key not in _NOT_RESUMED and "train" in FIELDS[key].metadata["roles"]:
+            out[key] = _coerce(key, value, f"{path}: ")
+    check_values(out, lambda name: f"{path}: {name}")
+    return out
 
 
 def from_options(options: Mapping[str, Any], role: str, environ: Mapping[str, str] | None = None) -> Config:

@@ -107,7 +107,9 @@ RUN_IDENTITY = ("env", "algo", "reward", "hidden", "critic_norm")
 
 def check_same_run(cfg: Config) -> None:
     """Raise ConfigError (on the first option that differs) when a --resume names another run than the one its
-    directory's config.toml says it holds; before anything is written."""
+    directory's config.toml says it holds; before anything is written. `silcr train` takes what is not given again
+    from that file (`config.resumed_run_options`), so only an option given again can differ there; the Python API
+    and a component started by hand give all of theirs."""
     if not cfg.resume:
         return
     path = run_layout.config(Path(cfg.run_dir))
@@ -119,8 +121,8 @@ def check_same_run(cfg: Config) -> None:
     for key in RUN_IDENTITY:
         if saved[key] != given[key]:
             raise ConfigError(option_name(key), f"{cfg.run_dir} holds a run with {key} = {saved[key]!r}, not "
-                                                f"{given[key]!r}; --resume goes on with the run's own options: give "
-                                                f"them again, or add --config {path} (the command line wins)")
+                                                f"{given[key]!r}; --resume goes on with the run's own options "
+                                                f"({path}): leave {option_name(key)} out, or pick another --run name")
 
 
 def target_updates(cfg: Config) -> int:

@@ -54,6 +54,25 @@ def test_saved_config_round_trips(tmp_path):
     assert Config(**data) == cfg
 
 
+def test_resume_takes_what_is_not_given_again_from_the_runs_config(tmp_path):
+    runs = tmp_path / "runs"
+    (runs / "r1").mkdir(parents=True)
+    _resolve(["--run", "r1", "--env", "Walker2d-v5", "--hidden", "32", "16", "--total-steps", "300000",
+              "--seed", "4"]).save(runs / "r1" / "config.toml")
+    # The run's own options, the budget among them; what is given again wins (a file's, the command line's).
+    f = tmp_path / "more.toml"
+    f.write_text("total-steps = 400000\n")
+    cfg = _resolve(["--run", "r1", "--runs-dir", str(runs), "--resume", "--config", str(f), "--seed", "5"])
+    assert (cfg.env, cfg.hidden, cfg.total_steps, cfg.seed, cfg.resume) == ("Walker2d-v5", [32, 16], 400_000, 5, True)
+    # Without --resume, or for a component (it is given its options whole), the defaults as before.
+    assert _resolve(["--run", "r1", "--runs-dir", str(runs)]).env == "Hopper-v5"
+    assert _resolve(["--run", "r1", "--runs-dir", str(runs), "--resume"], role="learner").hidden == [800, 400]
+    assert _resolve(["--run", "new", "--runs-dir", str(runs), "--resume"]).total_steps == 2_000_000  # nothing saved
+    (runs / "r1" / "config.toml").write_text("env = = 'x'\n")
+    with pytest.raises(ConfigError, match=r"--resume: .*r1/config.toml cannot be read"):
+        _resolve(["--run", "r1", "--runs-dir", str(runs), "--resume"])
+
+
 @pytest.mark.parametrize(
     "text, needle",
     [

@@ -69,17 +69,23 @@ def test_resume_of_a_finished_run_changes_nothing_and_exits_0(tmp_path, mode):
         f"on with it, or pick another --run name (or delete the directory to start that run again)"), twice.stderr
     assert _fingerprint(run_dir) == before
 
-    # A --resume that names another run (the command without the run's options: Hopper-v5's defaults; other
-    # networks) with a budget still to spend is refused on the option that differs, before config.toml is rewritten
-    # (it was: then the buffer's checkpoint refused to load, and the run's config said Hopper-v5).
-    bare = ["--run", "done", "--runs-dir", str(runs), "--total-steps", "3000", "--resume"]
-    for extra, option, held in (([], "--env", f"env = '{ENV}', not 'Hopper-v5'"),
-                                (["--env", ENV, "--hidden", "32", "32"], "--hidden", "hidden = [16, 16], not [32, 32]")):
-        other = _silcr("train", *bare, *extra)
+    # `--resume` alone goes on with the run's own options (its config.toml), the budget among them: before, what
+    # was not given again took its default (Hopper-v5, 800-400 networks, a 2M budget that reopened this run).
+    bare = _silcr("train", "--run", "done", "--runs-dir", str(runs), "--resume")
+    assert bare.returncode == 0 and bare.stdout.startswith("silcr train: run done already finished at "), \
+        (bare.stdout, bare.stderr)
+    assert _fingerprint(run_dir) == before
+    # An option given again that names another run (other env, other networks), with a budget still to spend, is
+    # refused on the option that differs, before config.toml is rewritten (it was: then the buffer's checkpoint
+    # refused to load, and the run's config said Hopper-v5).
+    more = ["--run", "done", "--runs-dir", str(runs), "--total-steps", "3000", "--resume"]
+    for extra, option, held in ((["--env", "Hopper-v5"], "--env", f"env = '{ENV}', not 'Hopper-v5'"),
+                                (["--hidden", "32", "32"], "--hidden", "hidden = [16, 16], not [32, 32]")):
+        other = _silcr("train", *more, *extra)
         assert other.returncode == 2 and "Traceback" not in other.stderr, other.stderr
         assert other.stderr.strip().splitlines()[-1] == (
             f"silcr train: error: {option}: {run_dir} holds a run with {held}; --resume goes on with the run's own "
-            f"options: give them again, or add --config {run_dir / 'config.toml'} (the command line wins)")
+            f"options ({run_dir / 'config.toml'}): leave {option} out, or pick another --run name")
         assert _fingerprint(run_dir) == before
     # What that line offers: the run's own config.toml names it.
     own = _silcr("train", "--config", str(run_dir / "config.toml"), "--resume")
