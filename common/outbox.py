@@ -128,8 +128,9 @@ class Outbox:
         self._sent_upto = max(self._sent_upto, ep.seq + 1)
 
     def hurry(self, ack_timeout: float) -> None:
-        """The actor stops: send everything unconfirmed again after each `ack_timeout` s without an ack (it
-        has no time to back off, nor new episodes whose arrival would show the buffer a gap)."""
+        """The actor stops: send everything unconfirmed again once `ack_timeout` s pass without an ack (the wait
+        doubling while none comes, as a probe's does): it has no time to back off, nor new episodes whose arrival
+        would show the buffer a gap."""
         self._base_timeout = self._timeout = min(self._timeout, ack_timeout)
         self._stopping = True
 
