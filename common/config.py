@@ -18,7 +18,7 @@ from typing import Any, Callable, Mapping
 
 import tomli_w
 
-from silcr.common import algorithms
+from silcr.common import algorithms, run_layout
 from silcr.common.envs import EPISODIC_IDS, REWARD_MODES
 from silcr.common.protocol import DEFAULT_MAX_EPISODE_BYTES, WEIGHTS_WIRE, validate_run_name
 
@@ -348,7 +348,7 @@ def resumed_run_options(given: Mapping[str, Any]) -> dict[str, Any]:
     finished 300k run); none without a --run name (a new default name) or a file."""
     if not given.get("run"):
         return {}
-    path = Path(given.get("runs_dir", default_of("runs_dir"))) / given["run"] / "config.toml"
+    path = run_layout.config(Path(given.get("runs_dir", default_of("runs_dir"))) / given["run"])
     try:
         saved = tomllib.loads(path.read_text())
     except FileNotFoundError:
